@@ -1,0 +1,1 @@
+"""Data contracts: EXR I/O, the sample schema, shards, splits and relighting pairs."""
