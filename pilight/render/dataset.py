@@ -1,0 +1,163 @@
+"""Render a whole dataset: scenes x views x lights, resumable and byte-deterministic (bpy only).
+
+Per view, the first light's render also carries the view maps (AOVs + normal pass); later
+lights render only what they need (beauty + diffuse passes). All main-scene renders of a view
+run back to back, then all ball renders, so Cycles' persistent data is reused within each.
+A view is complete when its `.done` marker exists; a rerun skips complete views and redoes
+the rest, so an interrupted render ends with the same files as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import bpy
+import numpy as np
+from tqdm import tqdm
+
+from pilight.data import layout
+from pilight.data.exr import read_render_passes, write_exr
+from pilight.params import BaseParams, RenderParams
+from pilight.render import passes as P
+from pilight.render import scene as S
+from pilight.render.spec import SPLITS, scene_spec
+
+
+def bundled_hdri_dir() -> Path:
+    return Path(bpy.utils.system_resource("DATAFILES", path="studiolights/world"))
+
+
+def write_json(path: Path, obj) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(obj, indent=1, sort_keys=True))
+    os.replace(tmp, path)
+
+
+def _srgb8(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    return (srgb * 255.0 + 0.5).astype(np.uint8)
+
+
+def write_preview(path: Path, tiles: list[np.ndarray]) -> None:
+    """sRGB PNG strip for people (the only place sRGB is used in the render stage)."""
+    from PIL import Image
+
+    rgb = [np.repeat(t, 3, axis=-1) if t.shape[-1] == 1 else t for t in tiles]
+    tmp = path.with_name(f".{path.name}.tmp")
+    Image.fromarray(_srgb8(np.concatenate(rgb, axis=1))).save(tmp, format="PNG")
+    os.replace(tmp, path)
+
+
+def _render(scene, tmp_dir: Path) -> dict[str, np.ndarray]:
+    out = tmp_dir / f"{scene.name}.exr"
+    scene.render.filepath = str(out)
+    bpy.ops.render.render(write_still=True, scene=scene.name)
+    passes = read_render_passes(out)
+    out.unlink()
+    return passes
+
+
+def render_view(handles: dict, spec: dict, view: int, root: Path, tmp_dir: Path, *, lambertian: bool,
+                verify: bool = False, on_bundle=None) -> dict:
+    """Render every light of one view; return the raw passes when `verify` (for tests)."""
+    scene, ball_scene = handles["scene"], handles["ball_scene"]
+    S.set_view(handles, spec["views"][view])
+    rot = np.array(S.camera_rotation(handles))
+    sid, raw = spec["id"], {}
+    maps = None
+    for li, light in enumerate(spec["lights"][view]):
+        S.set_lights(light)
+        S.set_world(handles["world"], light)
+        P.configure(scene.view_layers[0], diffuse=True, view_maps=li == 0, verify=verify)
+        passes = _render(scene, tmp_dir)
+        if li == 0:
+            maps = P.view_maps(passes, rot)
+            for name, arr in maps.items():
+                write_exr(layout.map_path(root, sid, view, name), arr, half=name not in layout.FLOAT32_MAPS)
+        out = P.decompose(passes, maps["albedo"], where=f"{sid} view {view} light {li}")
+        for name, arr in out.items():
+            write_exr(layout.map_path(root, sid, view, name, li), arr, half=False)
+        if verify:
+            raw[li] = passes
+        if on_bundle:
+            on_bundle()
+    P.configure(ball_scene.view_layers[0], diffuse=True, view_maps=False)
+    for li, light in enumerate(spec["lights"][view]):
+        S.set_lights(light)
+        S.set_world(handles["world"], light)
+        balls = P.ball_maps(_render(ball_scene, tmp_dir))
+        if not lambertian:
+            balls.pop("ball_lambertian")
+        for name, arr in balls.items():
+            write_exr(layout.map_path(root, sid, view, name, li), arr, half=True)
+        d = layout.light_dir(root, sid, view, li)
+        tiles = [_read(d / "image.exr"), maps["albedo"], _read(d / "diffuse.exr"), _read(d / "specular.exr"), balls["ball"]]
+        write_preview(d / "preview.png", tiles)
+    (layout.view_dir(root, sid, view) / layout.DONE_MARKER).write_text("")
+    return raw
+
+
+def _read(path: Path) -> np.ndarray:
+    from pilight.data.exr import read_exr
+
+    return read_exr(path)
+
+
+def scene_sidecar(spec: dict, handles: dict, p: RenderParams) -> dict:
+    cams = []
+    for v, view in enumerate(spec["views"]):
+        S.set_view(handles, view)
+        cams.append({"view": v, **S.camera_json(handles["camera"], handles["scene"])})
+    return {
+        "id": spec["id"], "split": spec["split"], "kind": spec["kind"], "seed": spec["seed"],
+        "blender_version": bpy.app.version_string, "resolution": p.resolution,
+        "spec": spec, "materials": handles["materials"], "cameras": cams,
+        "lights": [[{"light": li, **l} for li, l in enumerate(view_lights)] for view_lights in spec["lights"]],
+    }
+
+
+def all_specs(p: RenderParams, base: BaseParams) -> list[dict]:
+    counts = p.scenes.model_dump()
+    return [scene_spec(p, base.seed, split, i) for split in SPLITS for i in range(counts[split])]
+
+
+def render_dataset(p: RenderParams, base: BaseParams, root: Path, *, progress: bool = True) -> dict:
+    """Render all scenes into `root`; returns timing figures."""
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    hdri_dir = Path(p.hdri.dir) if p.hdri.dir else bundled_hdri_dir()
+    specs = all_specs(p, base)
+    total = sum(len(v) for s in specs for v in s["lights"])
+    bar = tqdm(total=total, desc="render (view, light) bundles", unit="bundle", disable=not progress)
+    manifest, t0 = [], time.perf_counter()
+    tmp_dir = Path(tempfile.mkdtemp(prefix=".render_tmp_", dir=root))
+    try:
+        for spec in specs:
+            sid = spec["id"]
+            pending = [v for v in range(len(spec["views"])) if not (layout.view_dir(root, sid, v) / layout.DONE_MARKER).is_file()]
+            if pending or not (root / sid / "scene.json").is_file():
+                handles = S.build(spec, p, hdri_dir)
+                for v in range(len(spec["views"])):
+                    if v in pending:
+                        render_view(handles, spec, v, root, tmp_dir, lambertian=p.lambertian_ball, on_bundle=bar.update)
+                    else:
+                        bar.update(len(spec["lights"][v]))
+                write_json(root / sid / "scene.json", scene_sidecar(spec, handles, p))
+            else:
+                bar.update(sum(len(v) for v in spec["lights"]))
+            manifest.append({"id": sid, "kind": spec["kind"], "split": spec["split"], "views": len(spec["views"]),
+                             "lights": len(spec["lights"][0]),
+                             "hdris": sorted({l["hdri"]["name"] for v in spec["lights"] for l in v if l["hdri"]})})
+    finally:
+        shutil.rmtree(tmp_dir, ignore_errors=True)
+        bar.close()
+    write_json(root / "manifest.json", {"blender_version": bpy.app.version_string, "resolution": p.resolution,
+                                        "scenes": manifest})
+    seconds = time.perf_counter() - t0
+    return {"bundles": total, "seconds": seconds}

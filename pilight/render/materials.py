@@ -1,0 +1,113 @@
+"""Materials and the shader AOVs that give exact per-pixel intrinsics (runs inside bpy only).
+
+Every Principled BSDF also writes what feeds its Base Color, Roughness and Metallic inputs to
+shader AOVs ("albedo", "roughness", "metallic") and 1.0 to "principled". Cycles evaluates AOVs
+at the camera ray's first hit in the same render as the beauty pass: no extra render, and the
+values are the material's own (no compositor reconstruction that drifts with the light, the
+problem the paper reports with BlenderProc). Glass and emission write no AOV, so "principled"
+stays 0 there and the mask excludes them.
+"""
+
+from __future__ import annotations
+
+import bpy
+
+AOVS = (("albedo", "COLOR"), ("roughness", "VALUE"), ("metallic", "VALUE"), ("principled", "VALUE"))
+_TEXTURE_NODES = {
+    "noise": "ShaderNodeTexNoise", "voronoi": "ShaderNodeTexVoronoi", "checker": "ShaderNodeTexChecker",
+    "wave": "ShaderNodeTexWave", "brick": "ShaderNodeTexBrick", "magic": "ShaderNodeTexMagic",
+}
+
+
+def add_aov_layers(view_layer) -> None:
+    existing = {a.name for a in view_layer.aovs}
+    for name, kind in AOVS:
+        if name not in existing:
+            aov = view_layer.aovs.add()
+            aov.name, aov.type = name, kind
+
+
+def _aov_node(nt, name: str):
+    node = nt.nodes.new("ShaderNodeOutputAOV")
+    node.aov_name = name
+    return node
+
+
+def _driven(nt, spec: dict, colour: bool):
+    """A socket carrying a constant or a procedural texture mapped between two values."""
+    if "const" in spec:
+        return None, spec["const"]
+    tex = nt.nodes.new(_TEXTURE_NODES[spec["texture"]])
+    tex.inputs["Scale"].default_value = spec["scale"]
+    fac = tex.outputs["Fac"] if "Fac" in tex.outputs else tex.outputs[0]
+    a, b = spec["values"]
+    if colour:
+        mix = nt.nodes.new("ShaderNodeMix")
+        mix.data_type = "RGBA"
+        mix.clamp_factor = True
+        nt.links.new(fac, mix.inputs["Factor"])
+        mix.inputs["A"].default_value = (*a, 1.0)
+        mix.inputs["B"].default_value = (*b, 1.0)
+        return mix.outputs["Result"], None
+    rng = nt.nodes.new("ShaderNodeMapRange")
+    rng.clamp = True
+    nt.links.new(fac, rng.inputs["Value"])
+    rng.inputs["To Min"].default_value, rng.inputs["To Max"].default_value = a, b
+    return rng.outputs["Result"], None
+
+
+def wire_principled_aovs(nt, bsdf) -> None:
+    """Send whatever feeds the BSDF's inputs to the AOVs too (also used for imported assets)."""
+    for aov, socket_name, out_socket in (("albedo", "Base Color", "Color"), ("roughness", "Roughness", "Value"),
+                                         ("metallic", "Metallic", "Value")):
+        node, src = _aov_node(nt, aov), bsdf.inputs[socket_name]
+        if src.is_linked:
+            nt.links.new(src.links[0].from_socket, node.inputs[out_socket])
+        else:
+            node.inputs[out_socket].default_value = src.default_value
+    _aov_node(nt, "principled").inputs["Value"].default_value = 1.0
+
+
+def make_material(name: str, spec: dict):
+    mat = bpy.data.materials.new(name)
+    mat.use_nodes = True
+    nt = mat.node_tree
+    nt.nodes.clear()
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    kind = spec["type"]
+    if kind == "principled":
+        bsdf = nt.nodes.new("ShaderNodeBsdfPrincipled")
+        for socket_name, key, colour in (("Base Color", "base_color", True), ("Roughness", "roughness", False),
+                                         ("Metallic", "metallic", False)):
+            socket, const = _driven(nt, spec[key], colour)
+            if socket is not None:
+                nt.links.new(socket, bsdf.inputs[socket_name])
+            else:
+                bsdf.inputs[socket_name].default_value = (*const, 1.0) if colour else const
+        nt.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
+        wire_principled_aovs(nt, bsdf)
+    elif kind == "glass":
+        glass = nt.nodes.new("ShaderNodeBsdfGlass")
+        glass.inputs["Color"].default_value = (*spec["color"], 1.0)
+        glass.inputs["Roughness"].default_value = spec["roughness"]
+        glass.inputs["IOR"].default_value = spec["ior"]
+        nt.links.new(glass.outputs["BSDF"], out.inputs["Surface"])
+    elif kind == "emission":
+        em = nt.nodes.new("ShaderNodeEmission")
+        em.inputs["Color"].default_value = (*spec["color"], 1.0)
+        em.inputs["Strength"].default_value = spec["strength"]
+        nt.links.new(em.outputs["Emission"], out.inputs["Surface"])
+    else:
+        raise ValueError(f"material {name!r}: unknown type {kind!r}")
+    return mat
+
+
+def gray_ball_material():
+    """The paper's light ball: Principled, base colour 0.5, roughness 0.5, metallic 0."""
+    mat = bpy.data.materials.new("pilight_gray_ball")
+    mat.use_nodes = True
+    bsdf = next(n for n in mat.node_tree.nodes if n.type == "BSDF_PRINCIPLED")
+    bsdf.inputs["Base Color"].default_value = (0.5, 0.5, 0.5, 1.0)
+    bsdf.inputs["Roughness"].default_value = 0.5
+    bsdf.inputs["Metallic"].default_value = 0.0
+    return mat

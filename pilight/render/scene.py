@@ -1,0 +1,332 @@
+"""Build a Blender scene from a spec (runs inside bpy only).
+
+Two bpy scenes share one world and one collection of lights:
+- the main scene (objects, backdrop, perspective camera);
+- the ball scene: the paper's gray ball, centred on the scene's target point, seen by an
+  orthographic camera with the main camera's orientation and tangent to the image borders, so
+  the ball is lit by exactly the same lights and environment as the scene centre.
+Changing the light or the view only moves objects and edits the world, so Cycles' persistent
+data keeps the scene's geometry (BVH) between the renders of one view.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import bpy
+from mathutils import Euler, Matrix, Vector
+
+from pilight.params import RenderParams
+from pilight.render.materials import add_aov_layers, gray_ball_material, make_material, wire_principled_aovs
+
+BALL_RADIUS = 0.05  # small, so the ball samples the light field at the scene centre
+LIGHTS_COLLECTION = "pilight_lights"
+
+
+class RenderError(RuntimeError):
+    """Bad render input (asset, HDRI) or a broken render; the message names the file or scene."""
+
+
+def reset_blender() -> None:
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    # Untrusted .blend assets must never run their embedded Python.
+    bpy.context.preferences.filepaths.use_scripts_auto_execute = False
+
+
+def configure_cycles(scene, p: RenderParams, seed: int) -> None:
+    r, c = scene.render, scene.cycles
+    r.engine = "CYCLES"
+    r.resolution_x = r.resolution_y = p.resolution
+    r.resolution_percentage = 100
+    r.use_persistent_data = True
+    r.use_compositing = False
+    r.use_sequencer = False
+    r.dither_intensity = 0.0
+    if p.cycles.threads:
+        r.threads_mode, r.threads = "FIXED", p.cycles.threads
+    scene.view_settings.view_transform = "Standard"
+    scene.view_settings.look = "None"
+    scene.view_settings.exposure, scene.view_settings.gamma = 0.0, 1.0
+    c.device = p.cycles.device
+    c.samples = p.cycles.samples
+    c.use_adaptive_sampling = p.cycles.adaptive_threshold > 0
+    c.adaptive_threshold = p.cycles.adaptive_threshold
+    c.adaptive_min_samples = p.cycles.adaptive_min_samples
+    c.use_denoising = False
+    c.seed, c.use_animated_seed = seed, False
+    c.max_bounces = p.cycles.max_bounces
+    c.diffuse_bounces, c.glossy_bounces = p.cycles.diffuse_bounces, p.cycles.glossy_bounces
+    c.transmission_bounces = p.cycles.transmission_bounces
+    c.transparent_max_bounces = p.cycles.transparent_max_bounces
+    # Clamping would break Combined = sum of light passes, on which the A*D+S contract rests.
+    c.sample_clamp_direct = c.sample_clamp_indirect = 0.0
+    imf = r.image_settings
+    imf.media_type = "MULTI_LAYER_IMAGE"
+    imf.file_format = "OPEN_EXR_MULTILAYER"
+    imf.color_depth = "32"
+    imf.exr_codec = "ZIP"
+
+
+def _shape(name: str):
+    add = bpy.ops.mesh
+    {
+        "sphere": lambda: add.primitive_uv_sphere_add(segments=48, ring_count=24),
+        "icosphere": lambda: add.primitive_ico_sphere_add(subdivisions=3),
+        "cube": lambda: add.primitive_cube_add(),
+        "cylinder": lambda: add.primitive_cylinder_add(vertices=48),
+        "cone": lambda: add.primitive_cone_add(vertices=48),
+        "torus": lambda: add.primitive_torus_add(major_segments=48, minor_segments=16),
+        "monkey": lambda: add.primitive_monkey_add(),
+    }[name]()
+    obj = bpy.context.object
+    if name != "cube":
+        obj.data.shade_smooth()
+    return obj
+
+
+def _modifier(obj, kind: str) -> None:
+    if kind == "bevel":
+        m = obj.modifiers.new("bevel", "BEVEL")
+        m.width, m.segments = 0.08, 3
+        obj.data.shade_smooth()  # bevel needs smooth normals to look rounded
+    elif kind == "subdivision":
+        obj.modifiers.new("subdivision", "SUBSURF").render_levels = 2
+    elif kind == "displace":
+        obj.modifiers.new("subdivision", "SUBSURF").render_levels = 2
+        tex = bpy.data.textures.new(f"{obj.name}_clouds", "CLOUDS")
+        tex.noise_scale = 0.6
+        d = obj.modifiers.new("displace", "DISPLACE")
+        d.texture, d.strength = tex, 0.12
+    else:
+        raise ValueError(f"unknown modifier {kind!r}")
+
+
+def _plane(name: str, size: float, location, rotation, material):
+    bpy.ops.mesh.primitive_plane_add(size=size, location=location, rotation=rotation)
+    obj = bpy.context.object
+    obj.name = name
+    obj.data.materials.append(material)
+    return obj
+
+
+def _backdrop(spec: dict | None, ground_z: float) -> None:
+    if spec is None:
+        return
+    floor = make_material("backdrop_floor", spec["material"])
+    _plane("floor", 12.0 if spec["type"] == "ground" else 7.0, (0, 0, ground_z), (0, 0, 0), floor)
+    if spec["type"] == "room":  # an open room corner: back and left walls, no ceiling
+        wall = make_material("backdrop_wall", spec["wall_material"])
+        _plane("wall_back", 7.0, (0, 2.5, 3.5), (math.pi / 2, 0, 0), wall)
+        _plane("wall_left", 7.0, (-3.0, 0, 3.5), (0, math.pi / 2, 0), wall)
+
+
+def import_asset(path: str, name: str):
+    """Import one user asset with Blender's own importers; returns its root (an empty)."""
+    p = Path(path)
+    if not p.is_file():
+        raise RenderError(f"asset {path}: file not found")
+    before = set(bpy.data.objects)
+    try:
+        suffix = p.suffix.lower()
+        if suffix in (".glb", ".gltf"):
+            bpy.ops.import_scene.gltf(filepath=str(p))
+        elif suffix == ".obj":
+            bpy.ops.wm.obj_import(filepath=str(p))
+        elif suffix == ".blend":
+            # Loading data blocks never runs the file's scripts (and auto-exec is off anyway).
+            with bpy.data.libraries.load(str(p), link=False) as (src, dst):
+                dst.objects = list(src.objects)
+            for obj in dst.objects:
+                if obj is not None and obj.type == "MESH":
+                    bpy.context.scene.collection.objects.link(obj)
+        else:
+            raise RenderError(f"asset {path}: unsupported type {suffix!r}")
+    except RenderError:
+        raise
+    except Exception as exc:  # importers raise RuntimeError with Blender's report text
+        raise RenderError(f"asset {path}: import failed ({exc})") from exc
+    meshes = [o for o in set(bpy.data.objects) - before if o.type == "MESH" and o.name in bpy.context.scene.objects]
+    if not meshes:
+        raise RenderError(f"asset {path}: contains no mesh object")
+    root = bpy.data.objects.new(name, None)
+    bpy.context.scene.collection.objects.link(root)
+    for obj in meshes:
+        if obj.parent is None or obj.parent not in meshes:
+            obj.parent = root
+        for slot in obj.material_slots:
+            _wire_asset_material(slot.material)
+    return root, meshes
+
+
+def _wire_asset_material(mat) -> None:
+    """AOVs for an imported material whose surface is exactly one Principled BSDF."""
+    if mat is None or not mat.node_tree or any(n.type == "OUTPUT_AOV" for n in mat.node_tree.nodes):
+        return
+    out = next((n for n in mat.node_tree.nodes if n.type == "OUTPUT_MATERIAL" and n.is_active_output), None)
+    if out and out.inputs["Surface"].is_linked:
+        src = out.inputs["Surface"].links[0].from_node
+        if src.type == "BSDF_PRINCIPLED":
+            wire_principled_aovs(mat.node_tree, src)
+
+
+def _fit_asset(root, meshes, size: float, location, rotation_deg) -> None:
+    bpy.context.view_layer.update()
+    corners = [obj.matrix_world @ Vector(c) for obj in meshes for c in obj.bound_box]
+    lo = Vector(tuple(min(c[i] for c in corners) for i in range(3)))
+    hi = Vector(tuple(max(c[i] for c in corners) for i in range(3)))
+    scale = size / max(max(hi - lo), 1e-6)
+    centre = (lo + hi) / 2
+    root.scale = (scale, scale, scale)
+    root.rotation_euler = Euler([math.radians(a) for a in rotation_deg])
+    root.location = Vector(location) - scale * (root.rotation_euler.to_matrix() @ centre) + Vector((0, 0, scale * (centre.z - lo.z)))
+
+
+def _world(hdri_dir: Path):
+    world = bpy.data.worlds.new("pilight_world")
+    world.use_nodes = True
+    nt = world.node_tree
+    nt.nodes.clear()
+    coord, mapping = nt.nodes.new("ShaderNodeTexCoord"), nt.nodes.new("ShaderNodeMapping")
+    env, bg_env, bg_amb = nt.nodes.new("ShaderNodeTexEnvironment"), nt.nodes.new("ShaderNodeBackground"), nt.nodes.new("ShaderNodeBackground")
+    add, out = nt.nodes.new("ShaderNodeAddShader"), nt.nodes.new("ShaderNodeOutputWorld")
+    nt.links.new(coord.outputs["Generated"], mapping.inputs["Vector"])
+    nt.links.new(mapping.outputs["Vector"], env.inputs["Vector"])
+    nt.links.new(env.outputs["Color"], bg_env.inputs["Color"])
+    nt.links.new(bg_env.outputs["Background"], add.inputs[0])
+    nt.links.new(bg_amb.outputs["Background"], add.inputs[1])
+    nt.links.new(add.outputs["Shader"], out.inputs["Surface"])
+    world["hdri_dir"] = str(hdri_dir)
+    return world
+
+
+def set_world(world, light: dict) -> None:
+    nt = world.node_tree
+    env, bg_env = nt.nodes["Environment Texture"], nt.nodes["Background"]
+    bg_amb, mapping = nt.nodes["Background.001"], nt.nodes["Mapping"]
+    a = light["ambient"]
+    bg_amb.inputs["Color"].default_value = (a, a, a, 1.0)
+    hdri = light["hdri"]
+    bg_env.inputs["Strength"].default_value = 0.0 if hdri is None else hdri["strength"]
+    if hdri is not None:
+        env.image = load_hdri(Path(world["hdri_dir"]), hdri["name"])
+        mapping.inputs["Rotation"].default_value = (0.0, 0.0, math.radians(hdri["rotation_deg"]))
+
+
+def hdri_path(hdri_dir: Path, name: str) -> Path:
+    for suffix in (".exr", ".hdr"):
+        if (hdri_dir / f"{name}{suffix}").is_file():
+            return hdri_dir / f"{name}{suffix}"
+    raise RenderError(f"HDRI {name!r}: no {name}.exr or {name}.hdr in {hdri_dir}")
+
+
+def load_hdri(hdri_dir: Path, name: str):
+    path = hdri_path(hdri_dir, name)
+    img = bpy.data.images.load(str(path), check_existing=True)
+    if img.size[0] == 0 or img.size[1] == 0:
+        raise RenderError(f"HDRI {path}: unreadable image")
+    return img
+
+
+def set_lights(light: dict) -> None:
+    coll = bpy.data.collections[LIGHTS_COLLECTION]
+    for i, obj in enumerate(sorted(coll.objects, key=lambda o: o.name)):
+        if i < len(light["points"]):
+            pt = light["points"][i]
+            obj.location, obj.data.energy, obj.data.shadow_soft_size = pt["location"], pt["power"], pt["radius"]
+            obj.hide_render = False
+        else:
+            obj.hide_render = True
+
+
+def look_at(obj, location, target) -> None:
+    obj.location = Vector(location)
+    direction = Vector(target) - Vector(location)
+    obj.rotation_euler = direction.to_track_quat("-Z", "Y").to_euler()
+
+
+def set_view(handles: dict, view: dict) -> None:
+    cam, ball_cam = handles["camera"], handles["ball_camera"]
+    look_at(cam, view["location"], view["target"])
+    cam.data.lens = view["lens_mm"]
+    # Orthographic ball camera: same orientation, looking at the ball from 10 radii away.
+    rot = cam.rotation_euler.to_matrix()
+    ball_cam.rotation_euler = cam.rotation_euler
+    ball_cam.location = Vector(handles["target"]) + rot @ Vector((0, 0, 10 * BALL_RADIUS))
+    bpy.context.view_layer.update()
+
+
+def camera_json(cam, scene) -> dict:
+    """Intrinsics K (pixels) and world_from_camera (Blender camera: -z forward, y up)."""
+    res = scene.render.resolution_x
+    f_px = cam.data.lens / cam.data.sensor_width * res
+    K = [[f_px, 0.0, res / 2], [0.0, f_px, res / 2], [0.0, 0.0, 1.0]]
+    return {"K": K, "world_from_camera": [list(row) for row in cam.matrix_world], "lens_mm": cam.data.lens,
+            "sensor_width_mm": cam.data.sensor_width}
+
+
+def build(spec: dict, p: RenderParams, hdri_dir: Path) -> dict:
+    """Create both scenes for `spec`; return handles used while rendering."""
+    reset_blender()
+    scene = bpy.context.scene
+    scene.name = "pilight_main"
+    configure_cycles(scene, p, spec["cycles_seed"])
+    add_aov_layers(scene.view_layers[0])
+    materials = []
+    lowest = 0.0
+    for i, o in enumerate(spec["objects"]):
+        obj = _shape(o["shape"])
+        obj.name = f"obj_{i:02d}_{o['shape']}"
+        obj.location = o["location"]
+        obj.rotation_euler = [math.radians(a) for a in o["rotation_deg"]]
+        obj.scale = (o["scale"],) * 3
+        for m in o["modifiers"]:
+            _modifier(obj, m)
+        mat = make_material(f"mat_{i:02d}", o["material"])
+        obj.data.materials.append(mat)
+        materials.append({"object": obj.name, **o["material"]})
+        lowest = min(lowest, o["location"][2] - o["scale"])
+    for j, a in enumerate(spec["assets"]):
+        root, meshes = import_asset(a["asset"], f"asset_{j:02d}")
+        _fit_asset(root, meshes, a["size"], a["location"], a["rotation_deg"])
+    _backdrop(spec["backdrop"], 0.0 if spec["kind"] == "room" else lowest)
+
+    cam = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    world = _world(hdri_dir)
+    scene.world = world
+
+    lights = bpy.data.collections.new(LIGHTS_COLLECTION)
+    scene.collection.children.link(lights)
+    for k in range(max(len(l["points"]) for view_lights in spec["lights"] for l in view_lights)):
+        lamp = bpy.data.objects.new(f"light_{k}", bpy.data.lights.new(f"light_{k}", "POINT"))
+        lights.objects.link(lamp)
+
+    ball_scene = bpy.data.scenes.new("pilight_ball")
+    configure_cycles(ball_scene, p, spec["cycles_seed"])
+    ball_scene.render.film_transparent = True  # ball image is 0 outside the disk
+    ball_scene.world = world
+    ball_scene.collection.children.link(lights)
+    ball_mesh = bpy.data.meshes.new("ball")
+    ball = bpy.data.objects.new("ball", ball_mesh)
+    ball_scene.collection.objects.link(ball)
+    import bmesh
+    bm = bmesh.new()
+    bmesh.ops.create_uvsphere(bm, u_segments=96, v_segments=48, radius=BALL_RADIUS)
+    bm.to_mesh(ball_mesh)
+    bm.free()
+    ball_mesh.shade_smooth()
+    ball_mesh.materials.append(gray_ball_material())
+    ball.location = spec["target"]
+    ball_cam = bpy.data.objects.new("ball_camera", bpy.data.cameras.new("ball_camera"))
+    ball_cam.data.type, ball_cam.data.ortho_scale = "ORTHO", 2 * BALL_RADIUS
+    ball_cam.data.clip_start, ball_cam.data.clip_end = BALL_RADIUS, 40 * BALL_RADIUS
+    ball_scene.collection.objects.link(ball_cam)
+    ball_scene.camera = ball_cam
+    return {"scene": scene, "ball_scene": ball_scene, "camera": cam, "ball_camera": ball_cam, "world": world,
+            "target": spec["target"], "materials": materials}
+
+
+def camera_rotation(handles: dict) -> Matrix:
+    return handles["camera"].matrix_world.to_3x3()
