@@ -70,7 +70,6 @@ def wire_principled_aovs(nt, bsdf) -> None:
 
 def make_material(name: str, spec: dict):
     mat = bpy.data.materials.new(name)
-    mat.use_nodes = True
     nt = mat.node_tree
     nt.nodes.clear()
     out = nt.nodes.new("ShaderNodeOutputMaterial")
@@ -105,7 +104,6 @@ def make_material(name: str, spec: dict):
 def gray_ball_material():
     """The paper's light ball: Principled, base colour 0.5, roughness 0.5, metallic 0."""
     mat = bpy.data.materials.new("pilight_gray_ball")
-    mat.use_nodes = True
     bsdf = next(n for n in mat.node_tree.nodes if n.type == "BSDF_PRINCIPLED")
     bsdf.inputs["Base Color"].default_value = (0.5, 0.5, 0.5, 1.0)
     bsdf.inputs["Roughness"].default_value = 0.5

@@ -15,6 +15,7 @@ import math
 from pathlib import Path
 
 import bpy
+import numpy as np
 from mathutils import Euler, Matrix, Vector
 
 from pilight.params import RenderParams
@@ -102,6 +103,44 @@ def _modifier(obj, kind: str) -> None:
         raise ValueError(f"unknown modifier {kind!r}")
 
 
+def deterministic_normals(obj) -> None:
+    """Bake modifiers and give the mesh smooth normals computed in a fixed order.
+
+    Blender sums face normals into vertex normals in a thread-dependent order, so the last bit
+    of a smooth normal changes from run to run (measured: 1.2e-7 on a UV sphere), and with it
+    the render. A float3 `custom_normal` attribute on the point domain replaces Blender's
+    computation exactly, so the same seed gives the same bytes.
+    """
+    if obj.modifiers:
+        mesh = bpy.data.meshes.new_from_object(obj.evaluated_get(bpy.context.evaluated_depsgraph_get()))
+        obj.modifiers.clear()
+        obj.data = mesh
+    me = obj.data
+    if not any(poly.use_smooth for poly in me.polygons):
+        return  # flat faces use face normals, which are deterministic
+    n_loops = len(me.loops)
+    co = np.zeros(len(me.vertices) * 3, np.float32)
+    me.vertices.foreach_get("co", co)
+    co = co.reshape(-1, 3).astype(np.float64)
+    vi = np.zeros(n_loops, np.int64)
+    me.loops.foreach_get("vertex_index", vi)
+    start, total = np.zeros(len(me.polygons), np.int64), np.zeros(len(me.polygons), np.int64)
+    me.polygons.foreach_get("loop_start", start)
+    me.polygons.foreach_get("loop_total", total)
+    face = np.repeat(np.arange(len(total)), total)
+    nxt = np.arange(n_loops) + 1
+    last = start + total - 1
+    nxt[last] = start
+    face_n = np.zeros((len(total), 3))
+    np.add.at(face_n, face, np.cross(co[vi], co[vi[nxt]]))  # Newell: twice the area vector
+    vert_n = np.zeros_like(co)
+    np.add.at(vert_n, vi, face_n[face])  # area-weighted, in loop order
+    vert_n /= np.maximum(np.linalg.norm(vert_n, axis=1, keepdims=True), 1e-12)
+    attr = me.attributes.get("custom_normal") or me.attributes.new("custom_normal", "FLOAT_VECTOR", "POINT")
+    attr.data.foreach_set("vector", vert_n.astype(np.float32).ravel())
+    me.update()
+
+
 def _plane(name: str, size: float, location, rotation, material):
     bpy.ops.mesh.primitive_plane_add(size=size, location=location, rotation=rotation)
     obj = bpy.context.object
@@ -156,6 +195,7 @@ def import_asset(path: str, name: str):
             obj.parent = root
         for slot in obj.material_slots:
             _wire_asset_material(slot.material)
+        deterministic_normals(obj)
     return root, meshes
 
 
@@ -184,7 +224,6 @@ def _fit_asset(root, meshes, size: float, location, rotation_deg) -> None:
 
 def _world(hdri_dir: Path):
     world = bpy.data.worlds.new("pilight_world")
-    world.use_nodes = True
     nt = world.node_tree
     nt.nodes.clear()
     coord, mapping = nt.nodes.new("ShaderNodeTexCoord"), nt.nodes.new("ShaderNodeMapping")
@@ -284,6 +323,7 @@ def build(spec: dict, p: RenderParams, hdri_dir: Path) -> dict:
             _modifier(obj, m)
         mat = make_material(f"mat_{i:02d}", o["material"])
         obj.data.materials.append(mat)
+        deterministic_normals(obj)
         materials.append({"object": obj.name, **o["material"]})
         lowest = min(lowest, o["location"][2] - o["scale"])
     for j, a in enumerate(spec["assets"]):
@@ -318,6 +358,7 @@ def build(spec: dict, p: RenderParams, hdri_dir: Path) -> dict:
     bm.free()
     ball_mesh.shade_smooth()
     ball_mesh.materials.append(gray_ball_material())
+    deterministic_normals(ball)
     ball.location = spec["target"]
     ball_cam = bpy.data.objects.new("ball_camera", bpy.data.cameras.new("ball_camera"))
     ball_cam.data.type, ball_cam.data.ortho_scale = "ORTHO", 2 * BALL_RADIUS

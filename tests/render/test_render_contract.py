@@ -1,0 +1,136 @@
+"""The render stage's ground truth: the A*D+S contract, intrinsics, mask, normals and ball."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pilight.data import layout
+from pilight.data.exr import read_exr
+from tests.render.conftest import controlled_spec, point_light, principled, sphere, tiny_params
+
+pytestmark = pytest.mark.slow
+
+RED = (0.8, 0.3, 0.2)
+
+
+@pytest.fixture(scope="module")
+def two_spheres(tmp_path_factory, bpy_render):
+    """A constant Principled sphere (left) and a glass sphere (right), lit from the camera's right."""
+    root = tmp_path_factory.mktemp("two_spheres")
+    spec = controlled_spec(
+        [sphere(principled(RED, 0.4, 0.3), (-0.9, 0, 0), 0.8),
+         sphere({"type": "glass", "color": [0.9, 0.9, 0.9], "roughness": 0.0, "ior": 1.45}, (0.9, 0, 0), 0.8)],
+        [point_light((4.0, -3.0, 1.0)), point_light((-4.0, -3.0, 1.0), hdri={"name": "forest", "strength": 0.5, "rotation_deg": 30.0})],
+    )
+    raw, _ = bpy_render(spec, root)
+    return root, raw
+
+
+def _maps(root, light=None):
+    names = layout.VIEW_MAPS if light is None else layout.LIGHT_MAPS + layout.OPTIONAL_LIGHT_MAPS
+    return {n: read_exr(layout.map_path(root, "train_0000", 0, n, light)) for n in names}
+
+
+def _interior(mask: np.ndarray) -> np.ndarray:
+    """Mask pixels whose 8 neighbours are also on the mask (away from silhouettes)."""
+    m = mask[..., 0] > 0.5
+    inner = m.copy()
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            inner &= np.roll(np.roll(m, dy, 0), dx, 1)
+    return inner
+
+
+@pytest.mark.parametrize("light", [0, 1])
+def test_image_equals_albedo_times_diffuse_plus_specular(two_spheres, light):
+    root, _ = two_spheres
+    view, lit = _maps(root), _maps(root, light)
+    residual = np.abs(lit["image"] - view["albedo"] * lit["diffuse"] - lit["specular"])
+    assert (residual <= 1e-4 * (np.abs(lit["image"]) + 1e-3)).all(), residual.max()
+    assert (lit["diffuse"] >= 0).all() and (lit["specular"] >= 0).all()
+
+
+@pytest.mark.parametrize("light", [0, 1])
+def test_specular_is_the_sum_of_the_non_diffuse_passes(two_spheres, light):
+    """S is not a residual by fiat: it matches glossy + transmission + emission + background."""
+    root, raw = two_spheres
+    p = raw[light]
+    rest = (p["Glossy Color"] * (p["Glossy Direct"] + p["Glossy Indirect"])
+            + p["Transmission Color"] * (p["Transmission Direct"] + p["Transmission Indirect"])
+            + p["Emission"] + p["Environment"])
+    s = _maps(root, light)["specular"]
+    np.testing.assert_allclose(s, rest, rtol=1e-4, atol=1e-5)
+
+
+def test_diffuse_colour_is_a_scalar_share_of_base_colour(two_spheres):
+    """Cycles' Diffuse Color = k * Base Color with one k per pixel (the contract's premise)."""
+    root, raw = two_spheres
+    inner = _interior(_maps(root)["mask"])
+    ratio = raw[0]["Diffuse Color"][inner] / np.asarray(RED)
+    assert inner.sum() > 50
+    np.testing.assert_allclose(ratio, np.repeat(ratio.mean(axis=1, keepdims=True), 3, axis=1), rtol=1e-4)
+    assert (ratio < 0.7 + 1e-6).all(), "metallic 0.3 leaves at most 70% to the diffuse lobe"
+
+
+def test_constant_material_values_are_exact_on_interior_pixels(two_spheres):
+    root, _ = two_spheres
+    view = _maps(root)
+    inner = _interior(view["mask"])
+    np.testing.assert_allclose(view["albedo"][inner], np.broadcast_to(RED, (inner.sum(), 3)), atol=1e-5)
+    np.testing.assert_allclose(view["roughness"][inner], 0.4, atol=1e-3)  # float16 on disk
+    np.testing.assert_allclose(view["metallic"][inner], 0.3, atol=1e-3)
+
+
+def test_mask_excludes_glass_and_background(two_spheres):
+    root, _ = two_spheres
+    mask = _maps(root)["mask"][..., 0]
+    h, w = mask.shape
+    left, right = mask[:, : w // 2], mask[:, w // 2 :]
+    assert left.sum() > 100, "the Principled sphere on the left is masked in"
+    assert right.sum() == 0, "glass sphere and background are masked out"
+    assert mask[0, 0] == 0
+
+
+def test_normals_unit_camera_space(two_spheres):
+    root, _ = two_spheres
+    view = _maps(root)
+    n, inner = view["normal"], _interior(view["mask"])
+    np.testing.assert_allclose(np.linalg.norm(n[inner], axis=-1), 1.0, atol=1e-3)
+    assert (n[inner][:, 2] > 0).all(), "z points toward the camera on visible surfaces"
+    assert (n[view["mask"][..., 0] == 0] == 0).all()
+    # The left sphere's leftmost pixels face left (-x); its top faces up (+y).
+    cols = np.where(inner.any(axis=0))[0]
+    assert n[inner[:, cols[0]], cols[0], 0].mean() < -0.5
+    rows = np.where(inner.any(axis=1))[0]
+    assert n[rows[0], inner[rows[0]], 1].mean() > 0.5
+
+
+@pytest.mark.parametrize("light, lit_side", [(0, "right"), (1, "left")])
+def test_ball_brighter_on_the_side_facing_the_light(two_spheres, light, lit_side):
+    root, _ = two_spheres
+    lit = _maps(root, light)
+    for name in ("ball", "ball_lambertian"):
+        ball = lit[name].mean(axis=-1)
+        w = ball.shape[1]
+        left, right = ball[:, : w // 2].sum(), ball[:, w // 2 :].sum()
+        assert (right > 1.5 * left) if lit_side == "right" else (left > 1.5 * right), (name, left, right)
+        assert ball[0, 0] == 0 and ball[-1, -1] == 0, "outside the disk is 0"
+        h = ball.shape[0]
+        assert ball[h // 2, 1] > 0 or ball[h // 2, -2] > 0, "tangent to the borders"
+
+
+def test_lambertian_ball_in_constant_light_is_half_the_ambient(tmp_path, bpy_render):
+    """Under a constant environment of radiance a, a convex Lambertian surface has D = a, so the
+    Lambertian ball (albedo 0.5) is 0.5 * a on the whole disk: the units E_diff = ball / 0.5 rest on."""
+    a = 0.2
+    spec = controlled_spec([sphere(principled(RED, 0.5, 0.0))], [{"points": [], "hdri": None, "ambient": a}])
+    bpy_render(spec, tmp_path, tiny_params(cycles=dict(samples=64, adaptive_threshold=0.0)), verify=False)
+    ball = _maps(tmp_path, 0)["ball_lambertian"]
+    h, w, _ = ball.shape
+    y, x = np.mgrid[0:h, 0:w]
+    r = np.hypot((x + 0.5) / w * 2 - 1, (y + 0.5) / h * 2 - 1)
+    disk = ball[r < 0.9]
+    assert abs(disk.mean() / (0.5 * a) - 1) < 0.01  # Monte Carlo noise averages out over the disk
+    assert np.quantile(np.abs(disk / (0.5 * a) - 1), 0.95) < 0.1
+    assert (ball[r > 1.05] == 0).all()
