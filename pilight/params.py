@@ -145,6 +145,7 @@ class CyclesParams(_Section):
     glossy_bounces: int = Field(2, ge=0)
     transmission_bounces: int = Field(4, ge=0)
     transparent_max_bounces: int = Field(4, ge=0)
+    world_map_resolution: int = Field(256, ge=16, description="importance map of the world (HDRI); Blender's 1024 costs ~3.5 s per HDRI render at 128^2")
     device: Literal["CPU", "GPU"] = "CPU"
     threads: int = Field(0, ge=0, description="0 = all cores")
 
@@ -158,7 +159,9 @@ class RenderParams(_Section):
     light: LightParams = LightParams()
     hdri: HdriParams = HdriParams()
     scene: SceneParams = SceneParams()
-    lambertian_ball: bool = Field(True, description="also render a pure-diffuse ball for exact diffuse lookups")
+    lambertian_ball: bool = Field(True, description="also write the pure-diffuse ball (free: same render)")
+    ball_resolution: int = Field(64, ge=16, description="the light ball's own size; it is a smooth probe (16x32 env map)")
+    ball_samples: int = Field(32, ge=1, description="Cycles samples for the ball (adaptive threshold as the scene)")
     assets: tuple[str, ...] = Field((), description=".glb/.gltf/.obj/.blend files placed beside or instead of procedural shapes")
     assets_only: bool = Field(False, description="true: scenes hold only the listed assets, no procedural shapes")
 

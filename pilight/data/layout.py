@@ -15,7 +15,8 @@
         image.exr       RGB float32  linear HDR beauty render
         diffuse.exr     RGB float32  D >= 0 such that image = albedo * D + specular
         specular.exr    RGB float32  S >= 0 (glossy + transmission + emission + background)
-        ball.exr        RGB float16  gray ball (base 0.5, roughness 0.5) lit like the scene
+        ball.exr        RGB float16  gray ball (base 0.5, roughness 0.5) lit like the scene,
+                                     at its own size (render.ball_resolution)
         ball_lambertian.exr RGB float16  the same ball with a pure diffuse material (optional)
         preview.png     sRGB 8-bit   image | albedo | diffuse | specular | ball, for people
 ```

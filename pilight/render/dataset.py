@@ -48,7 +48,9 @@ def write_preview(path: Path, tiles: list[np.ndarray]) -> None:
     """sRGB PNG strip for people (the only place sRGB is used in the render stage)."""
     from PIL import Image
 
+    h = max(t.shape[0] for t in tiles)
     rgb = [np.repeat(t, 3, axis=-1) if t.shape[-1] == 1 else t for t in tiles]
+    rgb = [np.pad(t, ((0, h - t.shape[0]), (0, 0), (0, 0))) for t in rgb]  # the ball has its own size
     tmp = path.with_name(f".{path.name}.tmp")
     Image.fromarray(_srgb8(np.concatenate(rgb, axis=1))).save(tmp, format="PNG")
     os.replace(tmp, path)
@@ -70,7 +72,7 @@ def render_view(handles: dict, spec: dict, view: int, root: Path, tmp_dir: Path,
     S.set_view(handles, spec["views"][view])
     rot = np.array(S.camera_rotation(handles))
     sid, raw = spec["id"], {}
-    maps = None
+    maps, lit = None, {}
     for li, light in enumerate(spec["lights"][view]):
         S.set_lights(light)
         S.set_world(handles["world"], light)
@@ -83,6 +85,7 @@ def render_view(handles: dict, spec: dict, view: int, root: Path, tmp_dir: Path,
         out = P.decompose(passes, maps["albedo"], where=f"{sid} view {view} light {li}")
         for name, arr in out.items():
             write_exr(layout.map_path(root, sid, view, name, li), arr, half=False)
+        lit[li] = out
         if verify:
             raw[li] = passes
         if on_bundle:
@@ -96,17 +99,10 @@ def render_view(handles: dict, spec: dict, view: int, root: Path, tmp_dir: Path,
             balls.pop("ball_lambertian")
         for name, arr in balls.items():
             write_exr(layout.map_path(root, sid, view, name, li), arr, half=True)
-        d = layout.light_dir(root, sid, view, li)
-        tiles = [_read(d / "image.exr"), maps["albedo"], _read(d / "diffuse.exr"), _read(d / "specular.exr"), balls["ball"]]
-        write_preview(d / "preview.png", tiles)
+        tiles = [lit[li]["image"], maps["albedo"], lit[li]["diffuse"], lit[li]["specular"], balls["ball"]]
+        write_preview(layout.light_dir(root, sid, view, li) / "preview.png", tiles)
     (layout.view_dir(root, sid, view) / layout.DONE_MARKER).write_text("")
     return raw
-
-
-def _read(path: Path) -> np.ndarray:
-    from pilight.data.exr import read_exr
-
-    return read_exr(path)
 
 
 def scene_sidecar(spec: dict, handles: dict, p: RenderParams) -> dict:

@@ -222,7 +222,7 @@ def _fit_asset(root, meshes, size: float, location, rotation_deg) -> None:
     root.location = Vector(location) - scale * (root.rotation_euler.to_matrix() @ centre) + Vector((0, 0, scale * (centre.z - lo.z)))
 
 
-def _world(hdri_dir: Path):
+def _world(hdri_dir: Path, map_resolution: int):
     world = bpy.data.worlds.new("pilight_world")
     nt = world.node_tree
     nt.nodes.clear()
@@ -236,6 +236,7 @@ def _world(hdri_dir: Path):
     nt.links.new(bg_amb.outputs["Background"], add.inputs[1])
     nt.links.new(add.outputs["Shader"], out.inputs["Surface"])
     world["hdri_dir"] = str(hdri_dir)
+    world.cycles.sample_map_resolution = map_resolution
     return world
 
 
@@ -334,7 +335,7 @@ def build(spec: dict, p: RenderParams, hdri_dir: Path) -> dict:
     cam = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
     scene.collection.objects.link(cam)
     scene.camera = cam
-    world = _world(hdri_dir)
+    world = _world(hdri_dir, p.cycles.world_map_resolution)
     scene.world = world
 
     lights = bpy.data.collections.new(LIGHTS_COLLECTION)
@@ -346,6 +347,8 @@ def build(spec: dict, p: RenderParams, hdri_dir: Path) -> dict:
     ball_scene = bpy.data.scenes.new("pilight_ball")
     configure_cycles(ball_scene, p, spec["cycles_seed"])
     ball_scene.render.film_transparent = True  # ball image is 0 outside the disk
+    ball_scene.render.resolution_x = ball_scene.render.resolution_y = p.ball_resolution
+    ball_scene.cycles.samples = p.ball_samples
     ball_scene.world = world
     ball_scene.collection.children.link(lights)
     ball_mesh = bpy.data.meshes.new("ball")

@@ -1,0 +1,54 @@
+"""DVC stage `shard`: data/renders -> data/shards (webdataset tars, split lists, relighting pairs).
+
+    python stages/shard.py                      # params.yaml, data/renders -> data/shards
+    python stages/shard.py --renders R --out O  # elsewhere (tests)
+
+Reads params.yaml `base.seed`, the `shard:` section (pilight.data.shard_params.ShardParams) and
+`render.hdri.test_holdout` (checked: no train/val scene may use those HDRIs).
+Bad input exits 1 with one line naming the sample and file; nothing is left under --out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import yaml
+from pydantic import ValidationError
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without install
+
+from pilight.data.exr import ExrError  # noqa: E402
+from pilight.data.schema import DataError  # noqa: E402
+from pilight.data.shard_params import ShardParams  # noqa: E402
+from pilight.data.shards import write_shards  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--params", type=Path, default=Path("params.yaml"))
+    ap.add_argument("--renders", type=Path, default=Path("data/renders"))
+    ap.add_argument("--out", type=Path, default=Path("data/shards"))
+    args = ap.parse_args(argv)
+    try:
+        params = yaml.safe_load(args.params.read_text()) or {}
+        seed = params.get("base", {}).get("seed")
+        if not isinstance(seed, int) or isinstance(seed, bool):
+            raise DataError(f"{args.params}: base.seed must be an int, got {seed!r}")
+        shard = ShardParams(**(params.get("shard") or {}))
+        heldout = ((params.get("render") or {}).get("hdri") or {}).get("test_holdout") or ()
+        index = write_shards(args.renders, args.out, shard, seed=seed, heldout_hdris=heldout, progress=True)
+    except ValidationError as exc:
+        print(f"shard: error: {args.params}: shard section: {exc}", file=sys.stderr)
+        return 1
+    except (DataError, ExrError, OSError, yaml.YAMLError) as exc:
+        print(f"shard: error: {exc}", file=sys.stderr)
+        return 1
+    counts = ", ".join(f"{s} {v['samples']} samples / {len(v['shards'])} shards" for s, v in index["splits"].items())
+    print(f"shard: wrote {args.out}: {counts}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

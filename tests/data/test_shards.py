@@ -1,0 +1,314 @@
+"""Shard writer and readers on a synthetic render folder written exactly as pilight.data.layout says."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+import pytest
+import torch
+import webdataset as wds
+from pydantic import ValidationError
+
+from pilight.data import layout
+from pilight.data.exr import read_exr, write_exr
+from pilight.data.pairs import read_pairs
+from pilight.data.schema import DataError, SampleError
+from pilight.data.shard_params import ShardParams
+from pilight.data.shards import (eval_dataset, exr_decoder, intrinsics_dataset, make_loader, read_index,
+                                 relight_dataset, write_shards)
+from pilight.data.splits import SplitError, read_split
+
+REPO = Path(__file__).resolve().parents[2]
+SCENES = [("train_0000", 2, 3), ("train_0001", 1, 3), ("val_0000", 1, 2), ("test_0000", 2, 2)]
+SEED = 7
+
+
+def write_fake_renders(root: Path, scenes=SCENES, size: int = 16, ball: int = 8, seed: int = 0) -> Path:
+    """A render folder per layout.py with random but valid maps; image = albedo * diffuse + specular."""
+    rng = np.random.default_rng(seed)
+    manifest = {"blender_version": "5.0.1", "resolution": size, "scenes": []}
+    for sid, views, lights in scenes:
+        split = sid.split("_")[0]
+        hdris = [None if i % 2 else f"hdri{i}_{split}" for i in range(lights)]
+        manifest["scenes"].append({"id": sid, "kind": "object", "split": split, "views": views,
+                                   "lights": lights, "hdris": sorted({h for h in hdris if h})})
+        cams = [{"view": v, "world_from_camera": np.eye(4).tolist(), "K": np.eye(3).tolist(), "lens_mm": 50.0}
+                for v in range(views)]
+        # As the render stage writes it: lights are sampled per view, so a list per view.
+        lts = [[{"light": i, "points": [{"power": 10.0 + v}],
+                 "hdri": {"name": hdris[i], "strength": 1.0, "rotation_deg": 30.0} if hdris[i] else None,
+                 "ambient": 0.1} for i in range(lights)] for v in range(views)]
+        (root / sid).mkdir(parents=True)
+        (root / sid / "scene.json").write_text(json.dumps({"seed": 1, "cameras": cams, "lights": lts}))
+        for v in range(views):
+            mask = (rng.random((size, size, 1)) > 0.2).astype(np.float32)
+            n = rng.normal(size=(size, size, 3))
+            normal = n / np.linalg.norm(n, axis=-1, keepdims=True) * mask
+            albedo = rng.random((size, size, 3), dtype=np.float32)
+            view_maps = {"albedo": albedo, "normal": normal, "mask": mask,
+                         "roughness": rng.random((size, size, 1)), "metallic": rng.random((size, size, 1))}
+            for name, arr in view_maps.items():
+                write_exr(layout.map_path(root, sid, v, name), arr, half=name not in layout.FLOAT32_MAPS)
+            for li in range(lights):
+                d = rng.random((size, size, 3), dtype=np.float32) * 4
+                s = rng.random((size, size, 3), dtype=np.float32) * 0.5
+                maps = {"image": albedo * d + s, "diffuse": d, "specular": s,
+                        "ball": rng.random((ball, ball, 3)) * 2, "ball_lambertian": rng.random((ball, ball, 3))}
+                for name, arr in maps.items():
+                    write_exr(layout.map_path(root, sid, v, name, li), arr, half=name not in layout.FLOAT32_MAPS)
+            (layout.view_dir(root, sid, v) / layout.DONE_MARKER).touch()
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    return root
+
+
+@pytest.fixture
+def renders(tmp_path):
+    return write_fake_renders(tmp_path / "renders")
+
+
+@pytest.fixture
+def shards(renders, tmp_path):
+    out = tmp_path / "shards"
+    write_shards(renders, out, ShardParams(maxcount=4), seed=SEED)
+    return out
+
+
+def folder_hash(d: Path) -> str:
+    h = hashlib.sha256()
+    for p in sorted(d.rglob("*")):
+        if p.is_file():
+            h.update(str(p.relative_to(d)).encode() + b"\0" + p.read_bytes())
+    return h.hexdigest()
+
+
+def f16(path: Path) -> np.ndarray:
+    return read_exr(path).astype(np.float16).astype(np.float32)
+
+
+def test_round_trip_is_float16_exact(renders, shards):
+    seen = 0
+    for s in eval_dataset(shards, "train", task="intrinsics"):
+        m = json.loads(s["meta"])
+        for name in ("image", "albedo", "normal", "roughness", "metallic", "mask"):
+            light = m["light"] if name == "image" else None
+            want = f16(layout.map_path(renders, m["scene"], m["view"], name, light))
+            assert np.array_equal(s[name].numpy().transpose(1, 2, 0), want), (s["key"], name)
+        assert m["camera"]["view"] == m["view"] and m["light_params"]["light"] == m["light"]
+        assert m["light_params"]["points"][0]["power"] == 10.0 + m["view"]  # this view's light
+        assert m["manifest_extra"]["hdris"] and m["render"]["blender_version"] == "5.0.1"
+        seen += 1
+    assert seen == 2 * 3 + 1 * 3
+    for p in relight_dataset(shards, "test", shuffle=False):
+        m = json.loads(p["meta_b"])
+        for name in ("image", "ball", "diffuse", "specular", "ball_lambertian"):
+            want = f16(layout.map_path(renders, m["scene"], m["view"], name, m["light"]))
+            assert np.array_equal(p[f"{name}_b"].numpy().transpose(1, 2, 0), want)
+
+
+def test_byte_identical_and_views_never_straddle_shards(renders, tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    write_shards(renders, a, ShardParams(maxcount=4), seed=SEED)
+    write_shards(renders, b, ShardParams(maxcount=4), seed=SEED)
+    assert folder_hash(a) == folder_hash(b)
+    index = read_index(a)
+    assert index["splits"]["train"]["shards"] == ["train-000000.tar", "train-000001.tar", "train-000002.tar"]
+    for name in index["splits"]["train"]["shards"]:  # maxcount 4, 3 lights a view: one view a shard
+        keys = {s["__key__"].rsplit("_l", 1)[0] for s in wds.tarfile_samples([{"url": str(a / "train" / name)}])}
+        assert len(keys) == 1
+    assert not list(tmp_path.glob(".*"))  # no temporaries left beside the outputs
+
+
+def test_rewrite_replaces_previous_output(renders, shards):
+    before = folder_hash(shards)
+    write_shards(renders, shards, ShardParams(maxcount=4), seed=SEED)
+    assert folder_hash(shards) == before
+
+
+def _write_raw_exr(path: Path, arr: np.ndarray) -> None:
+    # Bypasses write_exr, which (rightly) refuses NaN/Inf: a corrupt render must still be caught.
+    chans = {c: np.ascontiguousarray(arr[..., i]) for i, c in enumerate("RGB")}
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, chans) as f:
+        f.write(str(path))
+
+
+def corrupt(root: Path, case: str) -> tuple[Path, str]:
+    """Break one file; return its path and the first sample that reads it."""
+    img = layout.map_path(root, "train_0001", 0, "image", 1)
+    if case in ("nan", "inf"):
+        arr = read_exr(img)
+        arr[3, 5, 1] = np.nan if case == "nan" else np.inf
+        _write_raw_exr(img, arr)
+    elif case == "shape":
+        write_exr(img, read_exr(img)[:15], half=False)
+    elif case == "missing":
+        img = layout.map_path(root, "train_0001", 0, "specular", 1)
+        img.unlink()
+    elif case == "range":
+        img = layout.map_path(root, "train_0001", 0, "roughness")  # per view: light 0 reads it first
+        write_exr(img, read_exr(img) + 1.0, half=True)
+        return img, "train_0001_v00_l00"
+    elif case == "truncated":
+        data = img.read_bytes()
+        img.write_bytes(data[: len(data) // 2])
+    return img, "train_0001_v00_l01"
+
+
+CASES = ["nan", "inf", "shape", "missing", "range", "truncated"]
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_corrupt_input_is_named_and_leaves_nothing(renders, tmp_path, case):
+    bad, key = corrupt(renders, case)
+    out = tmp_path / "out"
+    with pytest.raises((SampleError, DataError)) as err:
+        write_shards(renders, out, ShardParams(), seed=SEED)
+    assert key in str(err.value) and str(bad) in str(err.value)
+    assert not out.exists() and not list(tmp_path.glob(".out*"))
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_stage_script_exits_nonzero_with_clear_message(renders, tmp_path, case):
+    bad, key = corrupt(renders, case)
+    params = tmp_path / "params.yaml"
+    params.write_text("base:\n  seed: 3\nshard:\n  maxcount: 8\n")
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, str(REPO / "stages" / "shard.py"), "--params", str(params),
+                           "--renders", str(renders), "--out", str(out)], capture_output=True, text=True)
+    assert proc.returncode == 1
+    assert key in proc.stderr and str(bad) in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not out.exists() and not list(tmp_path.glob(".out*"))
+
+
+def test_stage_script_succeeds_and_rejects_bad_params(renders, tmp_path):
+    params = tmp_path / "params.yaml"
+    params.write_text("base:\n  seed: 3\nshard:\n  maxcount: 0\n")
+    cmd = [sys.executable, str(REPO / "stages" / "shard.py"), "--params", str(params),
+           "--renders", str(renders), "--out", str(tmp_path / "out")]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    assert proc.returncode == 1 and "shard.maxcount must be >= 1" in proc.stderr
+    params.write_text("base:\n  seed: 3\nshard:\n  maxcount: 8\n")
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert read_index(tmp_path / "out")["splits"]["train"]["samples"] == 9
+
+
+def test_incomplete_view_is_refused(renders, tmp_path):
+    (layout.view_dir(renders, "val_0000", 0) / layout.DONE_MARKER).unlink()
+    with pytest.raises(DataError, match=r"val_0000_v00_l00.*\.done"):
+        write_shards(renders, tmp_path / "out", ShardParams(), seed=SEED)
+
+
+def test_flat_light_list_in_scene_json_is_accepted(renders, tmp_path):
+    path = renders / "val_0000" / "scene.json"
+    info = json.loads(path.read_text())
+    info["lights"] = info["lights"][0]  # one list for all views, as the brief first described
+    path.write_text(json.dumps(info))
+    write_shards(renders, tmp_path / "out", ShardParams(), seed=SEED)
+
+
+def test_splits_are_disjoint_and_written(shards):
+    lists = {s: read_split(shards, s) for s in ("train", "val", "test")}
+    assert lists == {"train": ["train_0000", "train_0001"], "val": ["val_0000"], "test": ["test_0000"]}
+    hdris = json.loads((shards / "splits" / "hdris.json").read_text())
+    assert hdris["test_also_in_train_or_val"] == [] and hdris["only_in_test"] == ["hdri0_test"]
+
+
+def test_heldout_hdri_in_train_is_refused(renders, tmp_path):
+    with pytest.raises(SplitError, match=r"train_0000.*hdri0_train"):
+        write_shards(renders, tmp_path / "out", ShardParams(), seed=SEED, heldout_hdris=["hdri0_train"])
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("leak", ["two_splits", "id_names_other_split"])
+def test_leaky_manifest_is_refused(renders, tmp_path, leak):
+    mpath = renders / "manifest.json"
+    manifest = json.loads(mpath.read_text())
+    if leak == "two_splits":
+        manifest["scenes"].append({**manifest["scenes"][0], "split": "test"})
+    else:
+        manifest["scenes"][0]["split"] = "val"
+    mpath.write_text(json.dumps(manifest))
+    with pytest.raises(SplitError, match="train_0000"):
+        write_shards(renders, tmp_path / "out", ShardParams(), seed=SEED)
+    assert not (tmp_path / "out").exists()
+
+
+def test_pairs_share_scene_and_view_and_include_identity(shards):
+    listed = {(p.scene, p.view, p.a, p.b) for p in read_pairs(shards / "pairs" / "train.tsv")}
+    got = []
+    for p in relight_dataset(shards, "train", shuffle=True, seed=1):
+        a, b = json.loads(p["meta_a"]), json.loads(p["meta_b"])
+        assert (a["scene"], a["view"]) == (b["scene"], b["view"])
+        assert p["image_a"].shape == (3, 16, 16) and p["ball_b"].shape == (3, 8, 8)
+        got.append((a["scene"], a["view"], a["light"], b["light"]))
+    assert sorted(got) == sorted(listed) and len(got) == len(listed) == 3 * 9
+    assert all((s, v, li, li) in listed for s, v, li, _ in listed)
+    again = [p["key"] for p in relight_dataset(shards, "train", shuffle=True, seed=1)]
+    assert again == [f"{s}_v{v:02d}_l{a:02d}_to_l{b:02d}" for s, v, a, b in got]
+
+
+@pytest.mark.parametrize("task", ["intrinsics", "relight"])
+def test_two_workers_over_one_shard_terminate_and_see_each_item_once(renders, tmp_path, task):
+    out = tmp_path / "one"
+    write_shards(renders, out, ShardParams(), seed=SEED)
+    assert len(read_index(out)["splits"]["train"]["shards"]) == 1
+    ds = (intrinsics_dataset if task == "intrinsics" else relight_dataset)(out, "train", shuffle=True)
+    keys = [k for batch in make_loader(ds, batch_size=2, num_workers=2) for k in batch["key"]]
+    assert len(keys) == len(set(keys)) == (9 if task == "intrinsics" else 27)
+
+
+def test_two_workers_over_three_shards(shards):
+    assert len(read_index(shards)["splits"]["train"]["shards"]) == 3  # the shard-level split path
+    keys = [k for b in make_loader(intrinsics_dataset(shards, "train"), batch_size=1, num_workers=2) for k in b["key"]]
+    assert len(keys) == len(set(keys)) == 9
+
+
+@pytest.mark.parametrize("split", ["train", "val"])  # 3 shards / 1 shard over 2 ranks
+def test_ranks_partition_the_data(shards, monkeypatch, split):
+    per_rank = []
+    for rank in (0, 1):  # what split_by_node sees under torchrun
+        monkeypatch.setenv("RANK", str(rank))
+        monkeypatch.setenv("WORLD_SIZE", "2")
+        per_rank.append({s["key"] for s in intrinsics_dataset(shards, split, seed=5)})
+    assert not per_rank[0] & per_rank[1]
+    assert len(per_rank[0] | per_rank[1]) == read_index(shards)["splits"][split]["samples"]
+
+
+def test_shuffle_is_seeded_and_complete(shards):
+    order = lambda seed: [s["key"] for s in intrinsics_dataset(shards, "train", seed=seed, buffer=4)]  # noqa: E731
+    assert order(0) == order(0) and sorted(order(0)) == sorted(order(1))
+    assert order(0) != [s["key"] for s in eval_dataset(shards, "train", task="intrinsics")]
+
+
+def test_repeat_keeps_going_across_epochs(shards):
+    it = iter(intrinsics_dataset(shards, "val", repeat=True, buffer=2))
+    keys = [next(it)["key"] for _ in range(5)]  # val has 2 samples: 5 draws span 3 passes
+    assert set(keys) == {"val_0000_v00_l00", "val_0000_v00_l01"}
+
+
+def test_plain_webdataset_with_registered_exr_decoder(shards):
+    url = str(shards / "val" / "val-000000.tar")
+    sample = next(iter(wds.WebDataset(url, shardshuffle=False).decode(exr_decoder)))
+    assert sample["image.exr"].shape == (16, 16, 3) and sample["mask.exr"].dtype == np.float32
+
+
+def test_batches_collate(shards):
+    batch = next(iter(make_loader(relight_dataset(shards, "train"), batch_size=4)))
+    assert batch["image_a"].shape == (4, 3, 16, 16) and batch["mask"].shape == (4, 1, 16, 16)
+    assert batch["image_a"].dtype == torch.float32 and len(batch["meta_b"]) == 4
+
+
+def test_shard_params_validation():
+    with pytest.raises(ValidationError, match="extra"):
+        ShardParams(maxcnt=3)
+    with pytest.raises(ValidationError, match="pairs_per_view must be >= 0"):
+        ShardParams(pairs_per_view=-1)
+    with pytest.raises(ValidationError, match="maxsize must be a positive"):
+        ShardParams(maxsize=0)
