@@ -190,7 +190,9 @@ class RenderParams(_Section):
         return self
 
 
-SECTIONS: dict[str, type[_Section]] = {"base": BaseParams, "render": RenderParams}
+from pilight.data.shard_params import ShardParams  # noqa: E402  (the shard stage's own module)
+
+SECTIONS: dict[str, type[BaseModel]] = {"base": BaseParams, "render": RenderParams, "shard": ShardParams}
 
 
 def _format(section: str, err: ValidationError) -> str:

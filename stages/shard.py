@@ -14,14 +14,11 @@ import argparse
 import sys
 from pathlib import Path
 
-import yaml
-from pydantic import ValidationError
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without install
 
 from pilight.data.exr import ExrError  # noqa: E402
 from pilight.data.schema import DataError  # noqa: E402
-from pilight.data.shard_params import ShardParams  # noqa: E402
+from pilight.params import ParamsError, load_section  # noqa: E402
 from pilight.data.shards import write_shards  # noqa: E402
 
 
@@ -32,17 +29,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("data/shards"))
     args = ap.parse_args(argv)
     try:
-        params = yaml.safe_load(args.params.read_text()) or {}
-        seed = params.get("base", {}).get("seed")
-        if not isinstance(seed, int) or isinstance(seed, bool):
-            raise DataError(f"{args.params}: base.seed must be an int, got {seed!r}")
-        shard = ShardParams(**(params.get("shard") or {}))
-        heldout = ((params.get("render") or {}).get("hdri") or {}).get("test_holdout") or ()
+        seed = load_section("base", args.params).seed
+        shard = load_section("shard", args.params)
+        heldout = load_section("render", args.params).hdri.test_holdout
+    except ParamsError as exc:
+        print(f"shard: error: {exc}", file=sys.stderr)
+        return 2
+    try:
         index = write_shards(args.renders, args.out, shard, seed=seed, heldout_hdris=heldout, progress=True)
-    except ValidationError as exc:
-        print(f"shard: error: {args.params}: shard section: {exc}", file=sys.stderr)
-        return 1
-    except (DataError, ExrError, OSError, yaml.YAMLError) as exc:
+    except (DataError, ExrError, OSError) as exc:
         print(f"shard: error: {exc}", file=sys.stderr)
         return 1
     counts = ", ".join(f"{s} {v['samples']} samples / {len(v['shards'])} shards" for s, v in index["splits"].items())
