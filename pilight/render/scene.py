@@ -236,6 +236,9 @@ def _world(hdri_dir: Path, map_resolution: int):
     nt.links.new(bg_amb.outputs["Background"], add.inputs[1])
     nt.links.new(add.outputs["Shader"], out.inputs["Surface"])
     world["hdri_dir"] = str(hdri_dir)
+    # AUTOMATIC ignores sample_map_resolution and builds the map at the HDRI's size on every
+    # world edit: 0.8 s per HDRI-lit render at 128^2 (measured); MANUAL at 256 costs 0.06 s.
+    world.cycles.sampling_method = "MANUAL"
     world.cycles.sample_map_resolution = map_resolution
     return world
 
