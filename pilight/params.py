@@ -190,9 +190,113 @@ class RenderParams(_Section):
         return self
 
 
+DOMAINS = ("albedo", "normal", "roughness", "metallic")  # stage 1's outputs, in one-hot order
+
+
+class CodecParams(_Section):
+    kind: Literal["pixel", "vae"] = Field("pixel", description="pixel = lossless pixel-unshuffle (no weights); vae = AutoencoderKL")
+    factor: int = Field(4, ge=1, description="pixel codec downsampling factor")
+    path: str | None = Field(None, description="local AutoencoderKL folder (e.g. Stable Diffusion 2's vae/) for kind: vae")
+
+    @model_validator(mode="after")
+    def _path(self) -> "CodecParams":
+        if self.kind == "vae" and not self.path:
+            raise ValueError("codec.kind is 'vae' but codec.path is not set (a local AutoencoderKL folder)")
+        if self.path and not Path(self.path).is_dir():
+            raise ValueError(f"codec.path {self.path!r} does not exist")
+        return self
+
+
+class UNetParams(_Section):
+    init: Literal["scratch", "pretrained"] = "scratch"
+    path: str | None = Field(None, description="local SD2 / GeoWizard UNet folder for init: pretrained")
+    block_out_channels: tuple[int, ...] = (64, 128, 128)
+    layers_per_block: int = Field(1, ge=1)
+    attention_head_dim: int = Field(8, ge=1)
+    cross_attention_dim: int = Field(128, ge=1)
+
+    @model_validator(mode="after")
+    def _path(self) -> "UNetParams":
+        if self.init == "pretrained" and not self.path:
+            raise ValueError("unet.init is 'pretrained' but unet.path is not set (a local UNet folder)")
+        if self.path and not Path(self.path).is_dir():
+            raise ValueError(f"unet.path {self.path!r} does not exist")
+        return self
+
+
+class ConditioningParams(_Section):
+    kind: Literal["learned", "clip"] = Field("learned", description="clip = CLIP image encoder (paper); learned = a named learned embedding")
+    clip_path: str | None = None
+
+    @model_validator(mode="after")
+    def _path(self) -> "ConditioningParams":
+        if self.kind == "clip" and not self.clip_path:
+            raise ValueError("conditioning.kind is 'clip' but conditioning.clip_path is not set")
+        if self.clip_path and not Path(self.clip_path).is_dir():
+            raise ValueError(f"conditioning.clip_path {self.clip_path!r} does not exist")
+        return self
+
+
+class ScheduleParams(_Section):
+    num_train_timesteps: int = Field(1000, ge=2)
+    beta_schedule: Literal["linear", "scaled_linear", "squaredcos_cap_v2"] = "scaled_linear"
+    rescale_zero_snr: bool = False
+    timestep_spacing: Literal["leading", "trailing", "linspace"] = "leading"
+
+
+class TrainParams(_Section):
+    steps: int = Field(600, ge=1)
+    batch_size: int = Field(2, ge=1, description="samples per step; each carries every domain")
+    lr: float = Field(2e-4, gt=0)
+    weight_decay: float = Field(1e-2, ge=0)
+    warmup_steps: int = Field(20, ge=0)
+    grad_accum: int = Field(1, ge=1)
+    mixed_precision: Literal["no", "bf16", "fp16"] = "no"
+    cond_dropout: float = Field(0.1, ge=0.0, le=1.0, description="drop the condition so CFG works")
+    checkpoint_every: int = Field(200, ge=1)
+    keep_checkpoints: int = Field(2, ge=1)
+    log_every: int = Field(10, ge=1)
+    image_every: int = Field(200, ge=1)
+    num_workers: int = Field(0, ge=0)
+
+
+class IntrinsicsParams(_Section):
+    codec: CodecParams = CodecParams()
+    unet: UNetParams = UNetParams()
+    conditioning: ConditioningParams = ConditioningParams()
+    cross_batch_attention: bool = Field(True, description="false = the ablation: vanilla self-attention")
+    schedule: ScheduleParams = ScheduleParams()
+    train: TrainParams = TrainParams()
+
+
+class SamplingParams(_Section):
+    mode: Literal["ddim", "single_step"] = "ddim"
+    steps: int = Field(10, ge=1)
+    cfg_scale: float = Field(1.0, ge=0.0, description="the paper: 1.0 in stage 1, 1.5 in stage 2")
+    timestep_spacing: Literal["leading", "trailing", "linspace"] = "trailing"
+    ensemble: int = Field(1, ge=1)
+    batch_size: int = Field(4, ge=1)
+
+
+class InferIntrinsicsParams(SamplingParams):
+    domains: tuple[str, ...] = DOMAINS
+    splits: tuple[Literal["train", "val", "test"], ...] = ("train", "test")
+
+    @field_validator("domains")
+    @classmethod
+    def _domains(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        bad = [d for d in v if d not in DOMAINS]
+        if bad or not v or len(set(v)) != len(v):
+            raise ValueError(f"domains must be a non-empty subset of {list(DOMAINS)} without repeats; got {list(v)}")
+        return tuple(d for d in DOMAINS if d in v)
+
+
 from pilight.data.shard_params import ShardParams  # noqa: E402  (the shard stage's own module)
 
-SECTIONS: dict[str, type[BaseModel]] = {"base": BaseParams, "render": RenderParams, "shard": ShardParams}
+SECTIONS: dict[str, type[BaseModel]] = {
+    "base": BaseParams, "render": RenderParams, "shard": ShardParams,
+    "intrinsics": IntrinsicsParams, "infer_intrinsics": InferIntrinsicsParams,
+}
 
 
 def _format(section: str, err: ValidationError) -> str:

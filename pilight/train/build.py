@@ -1,0 +1,113 @@
+"""params -> codec + UNet + attention + conditioning + schedule, the same code for both stages.
+
+Also the trained model's files: `<dir>/model.safetensors` (trainable weights only; frozen
+pretrained parts such as a CLIP encoder or a VAE are reloaded from their own local paths) and
+`<dir>/config.json` (the params that built it, and the names of every substituted part).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file, save_file
+
+from pilight.diffusion.attention import set_cross_batch_attention
+from pilight.diffusion.codec import make_codec
+from pilight.diffusion.conditioning import make_conditioning, null_like
+from pilight.diffusion.model import DomainDiffusion
+from pilight.diffusion.schedule import make_train_scheduler
+from pilight.diffusion.unet import UNetSpec, build_unet, load_pretrained_unet
+
+
+class ModelError(ValueError):
+    """A model cannot be built or loaded as the params describe (paths, channels, sizes)."""
+
+
+@dataclass
+class Stack:
+    codec: object
+    model: DomainDiffusion
+    scheduler: object
+    num_views: int
+    cross_batch: bool
+
+    def alphas_cumprod(self, device) -> torch.Tensor:
+        return self.scheduler.alphas_cumprod.to(device)
+
+    def encode_condition(self, image: torch.Tensor, drop: torch.Tensor) -> torch.Tensor:
+        """Cross-attention states (B, tokens, D); dropped samples get the null (zero) state."""
+        ehs = self.model.conditioning(image)
+        return torch.where(drop[:, None, None], null_like(ehs), ehs)
+
+    def null_condition(self, ehs: torch.Tensor) -> torch.Tensor:
+        return null_like(ehs)
+
+    def describe(self) -> dict[str, str]:
+        """What each part is, for reports: substitutes are named, never silent."""
+        return {"codec": self.codec.name, "conditioning": self.model.conditioning.name,
+                "attention": f"cross-batch over {self.num_views} views" if self.cross_batch else "vanilla self-attention"}
+
+
+def build_stack(p, *, num_domains: int, num_views: int | None = None, cond_channels: int | None = None) -> Stack:
+    """p: a params section with codec, unet, conditioning, cross_batch_attention, schedule."""
+    num_views = num_views or num_domains
+    codec = make_codec(p.codec.kind, factor=p.codec.factor, path=p.codec.path)
+    latent = codec.latent_channels
+    cond = cond_channels or latent
+    if p.unet.init == "pretrained":
+        unet = load_pretrained_unet(p.unet.path, in_channels=latent + cond, num_domains=num_domains)
+        if unet.config.out_channels != latent:
+            raise ModelError(f"unet.path {p.unet.path}: out_channels {unet.config.out_channels} != codec latent channels {latent} ({codec.name})")
+    else:
+        n = len(p.unet.block_out_channels)
+        # Attention everywhere but the full-resolution level, where its token count is largest.
+        down = ("DownBlock2D",) + ("CrossAttnDownBlock2D",) * (n - 1)
+        up = ("CrossAttnUpBlock2D",) * (n - 1) + ("UpBlock2D",)
+        spec = UNetSpec(block_out_channels=tuple(p.unet.block_out_channels), layers_per_block=p.unet.layers_per_block,
+                        attention_head_dim=p.unet.attention_head_dim, cross_attention_dim=p.unet.cross_attention_dim,
+                        down_block_types=down, up_block_types=up, norm_num_groups=min(32, min(p.unet.block_out_channels)))
+        unet = build_unet(spec, in_channels=latent + cond, out_channels=latent, num_domains=num_domains)
+    dim = unet.config.cross_attention_dim
+    conditioning = make_conditioning(p.conditioning.kind, p.conditioning.clip_path, dim)
+    if conditioning.dim != dim:
+        raise ModelError(f"conditioning {conditioning.name} gives {conditioning.dim}-d states but the UNet's cross_attention_dim is {dim}")
+    set_cross_batch_attention(unet, num_views if p.cross_batch_attention else None)
+    model = DomainDiffusion(unet, conditioning, num_domains=num_domains, cond_channels=cond)
+    s = p.schedule
+    scheduler = make_train_scheduler(s.num_train_timesteps, s.beta_schedule, s.rescale_zero_snr, s.timestep_spacing)
+    return Stack(codec, model, scheduler, num_views, p.cross_batch_attention)
+
+
+def check_image_size(size: tuple[int, int], factor: int, where: str) -> None:
+    if size[0] % factor or size[1] % factor:
+        raise ModelError(f"{where}: image size {size[0]}x{size[1]} is not divisible by the codec factor {factor}")
+
+
+def trainable_state(model: torch.nn.Module) -> dict[str, torch.Tensor]:
+    keep = {n for n, prm in model.named_parameters() if prm.requires_grad}
+    return {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()
+            if k in keep or not k.startswith("conditioning.")}
+
+
+def save_model(stack: Stack, out_dir: Path, params: dict) -> None:
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tmp = out_dir / ".model.safetensors.tmp"
+    save_file(trainable_state(stack.model), str(tmp))
+    os.replace(tmp, out_dir / "model.safetensors")
+    (out_dir / "config.json").write_text(json.dumps({"params": params, "parts": stack.describe()}, indent=1, sort_keys=True))
+
+
+def load_model(stack: Stack, model_dir: Path) -> None:
+    path = Path(model_dir) / "model.safetensors"
+    if not path.is_file():
+        raise ModelError(f"{path}: trained model not found; run the training stage first")
+    state = load_file(str(path))
+    missing, unexpected = stack.model.load_state_dict(state, strict=False)
+    missing = [k for k in missing if k in trainable_state(stack.model)]
+    if missing or unexpected:
+        raise ModelError(f"{path}: does not match the params' model (missing {missing[:3]}, unexpected {unexpected[:3]})")

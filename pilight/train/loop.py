@@ -1,0 +1,276 @@
+"""The one training loop shared by both PI-Light stages (stage 1 intrinsics, stage 2 relighting).
+
+A stage script builds a :class:`Task` and calls :func:`train`.  The same script runs
+
+* on one process (CPU, or one GPU):   ``python stages/train_intrinsics.py``
+* data-parallel on 8 GPUs:            ``accelerate launch --multi_gpu --num_processes 8 stages/train_intrinsics.py``
+* DeepSpeed ZeRO-2 (untested here):
+  ``accelerate launch --use_deepspeed --zero_stage 2 --num_processes 8 stages/train_intrinsics.py``
+
+``accelerate`` handles device placement, autocast (``mixed_precision``), gradient accumulation,
+fp16 loss scaling and the process group.  The trainable module is NOT wrapped in DDP: a Task calls
+its own module, which would bypass a DDP wrapper's forward and silently skip gradient sync, so the
+loop broadcasts rank 0's weights once and averages gradients itself (one all-reduce per tensor at
+each optimizer step; no compute/communication overlap, BatchNorm-style buffers are not synced).
+Under DeepSpeed the engine reduces gradients (ZeRO hooks sit on the parameters); that path and
+resuming it are untested.  The loop never shards data: under several processes ``Task.batches``
+must return this process's shard (webdataset ``split_by_node``) and every process must yield the
+same number of batches per epoch, otherwise the collectives deadlock.
+
+Resume is automatic: if ``checkpoint_dir`` holds a complete checkpoint, :func:`train` restores
+model, AdamW, LR scheduler, RNG states (one generator per process), step and epoch, rebuilds
+``task.batches(epoch)`` and skips the batches already consumed (they are still read and decoded),
+so on CPU a resumed run ends bit-identical to an uninterrupted one.  Multi-process resume needs a
+shared ``checkpoint_dir`` and the same process count (else the RNG streams restart, with a warning).
+Under ``dvc repro`` the checkpoint folder must be a ``persist: true`` output, or DVC deletes it
+before the stage starts.  Checkpoints are safetensors only, see :mod:`pilight.train.checkpoint`.
+
+Optional Task hook: if the task has ``to(device)``, it is called first so frozen parts (VAE, text
+encoder) follow the trainable module onto the accelerator's device.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Protocol
+
+import numpy
+import torch
+from accelerate import Accelerator
+from accelerate.utils import DistributedType, send_to_device
+from tqdm.auto import tqdm
+
+from pilight.train import checkpoint as ckpt
+
+
+@dataclass
+class LoopConfig:
+    steps: int                 # optimizer steps (iterations)
+    lr: float = 1e-4
+    weight_decay: float = 1e-2
+    warmup_steps: int = 0      # linear warmup then constant (diffusers "constant_with_warmup")
+    grad_accum: int = 1
+    max_grad_norm: float | None = 1.0
+    mixed_precision: str = "no"   # "no" | "bf16" | "fp16"; fp16 on CPU falls back to fp32
+    checkpoint_every: int = 100
+    keep_checkpoints: int = 2  # retention limit
+    log_every: int = 10
+    image_every: int = 100     # qualitative grid to dvclive
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("grad_accum", "checkpoint_every", "keep_checkpoints", "log_every", "image_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"LoopConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if self.steps < 0 or self.warmup_steps < 0:
+            raise ValueError("LoopConfig.steps and warmup_steps must be >= 0")
+        if self.mixed_precision not in ("no", "bf16", "fp16"):
+            raise ValueError(f"mixed_precision must be 'no', 'bf16' or 'fp16', got {self.mixed_precision!r}")
+
+
+class Task(Protocol):
+    samples_per_batch: int
+
+    def trainable(self) -> torch.nn.Module: ...
+    def batches(self, epoch: int) -> Iterable[Any]: ...  # deterministic, this process's shard
+    def loss(self, batch: Any, generator: torch.Generator) -> tuple[torch.Tensor, dict[str, float]]: ...
+    def images(self, batch: Any) -> dict[str, numpy.ndarray]: ...  # must not draw from the global RNG it relies on
+
+
+def _constant_with_warmup(optimizer: torch.optim.Optimizer, warmup: int) -> torch.optim.lr_scheduler.LambdaLR:
+    # Same factor as diffusers.optimization.get_constant_schedule_with_warmup, without importing diffusers.
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: s / warmup if s < warmup else 1.0)
+
+
+def _rng_tensors(acc: Accelerator, generator: torch.Generator) -> dict[str, torch.Tensor]:
+    """Every process's RNG states, gathered as uint8 tensors (no pickling) for the main process."""
+    local = {"generator": generator.get_state(), "torch_cpu": torch.get_rng_state()}
+    if acc.device.type == "cuda":
+        local["cuda"] = torch.cuda.get_rng_state(acc.device)
+    out = {}
+    for name, t in local.items():
+        rows = acc.gather(t.to(acc.device)).reshape(acc.num_processes, -1).cpu()
+        out.update({f"rank{r}.{name}": rows[r] for r in range(acc.num_processes)})
+    return out
+
+
+def _restore_rng(acc: Accelerator, generator: torch.Generator, rng: dict[str, torch.Tensor]) -> None:
+    r = acc.process_index
+    if f"rank{r}.generator" not in rng:
+        warnings.warn(f"checkpoint has no RNG state for process {r} (process count changed?); resume is not exact")
+        return
+    generator.set_state(rng[f"rank{r}.generator"])
+    torch.set_rng_state(rng[f"rank{r}.torch_cpu"])
+    if acc.device.type == "cuda" and f"rank{r}.cuda" in rng:
+        torch.cuda.set_rng_state(rng[f"rank{r}.cuda"], acc.device)
+
+
+def _average_gradients(params: list[torch.nn.Parameter], world: int) -> None:
+    # A missing grad counts as zero so every process issues the same collectives (no deadlock).
+    for p in params:
+        if p.grad is None:
+            p.grad = torch.zeros_like(p)
+    for h in [torch.distributed.all_reduce(p.grad, async_op=True) for p in params]:
+        h.wait()
+    for p in params:
+        p.grad.div_(world)
+
+
+def _truncate_history(metrics_dir: Path, step: int) -> None:
+    """Drop dvclive rows logged after the checkpoint we resume from (they will be logged again)."""
+    for tsv in metrics_dir.rglob("*.tsv"):
+        lines = tsv.read_text(encoding="utf-8").splitlines(keepends=True)
+        if not lines:
+            continue
+        col = lines[0].rstrip("\r\n").split("\t").index("step")
+        kept = [ln for ln in lines[1:] if ln.strip() and int(ln.split("\t")[col]) <= step]
+        tsv.write_text("".join([lines[0], *kept]), encoding="utf-8")
+
+
+def _open_live(live_dir: Path, resumed_from: int | None):
+    from dvclive import Live  # imports dvc: keep it off the import path of pilight.train
+
+    # save_dvc_exp=False: the pipeline (dvc repro / dvc exp run) owns experiments; no git commits from here.
+    # dvcyaml=None: dvc.yaml of the repo declares metrics/plots; dvclive must not write its own.
+    live = Live(str(live_dir), resume=resumed_from is not None, save_dvc_exp=False, dvcyaml=None, report=None)
+    if resumed_from is not None:
+        _truncate_history(Path(live.plots_dir) / "metrics", resumed_from)
+    return live
+
+
+def train(task: Task, cfg: LoopConfig, checkpoint_dir: Path, live_dir: Path | None, *, progress: bool = True) -> dict:
+    checkpoint_dir = Path(checkpoint_dir)
+    cuda = torch.cuda.is_available()
+    mixed = cfg.mixed_precision
+    if mixed == "fp16" and not cuda:
+        warnings.warn("fp16 mixed precision needs a GPU; training in fp32 on CPU")
+        mixed = "no"
+    acc = Accelerator(mixed_precision=mixed, gradient_accumulation_steps=cfg.grad_accum, cpu=not cuda)
+    if hasattr(task, "to"):
+        task.to(acc.device)
+    module = task.trainable().to(acc.device)
+    params = [p for p in module.parameters() if p.requires_grad]
+    if not params:
+        raise ValueError("task.trainable() has no parameters with requires_grad=True")
+    optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    # accelerate steps a prepared scheduler num_processes times per optimizer step, hence the factor.
+    scheduler = _constant_with_warmup(optimizer, cfg.warmup_steps * acc.num_processes)
+    deepspeed = acc.distributed_type == DistributedType.DEEPSPEED
+    manual_sync = acc.num_processes > 1 and not deepspeed  # see module docstring: no DDP wrapper
+    if deepspeed:
+        model, optimizer, scheduler = acc.prepare(module, optimizer, scheduler)
+    else:
+        model = module
+        optimizer, scheduler = acc.prepare(optimizer, scheduler)
+    if manual_sync:  # what DDP's constructor would do: every process starts from rank 0's weights
+        for t in [*module.parameters(), *module.buffers()]:
+            torch.distributed.broadcast(t.data, src=0)
+    # One stream per process so the shards draw different noise; the loop never uses the global RNG.
+    generator = torch.Generator().manual_seed(cfg.seed + acc.process_index)
+
+    step, epoch, consumed, resumed_from, prior_seconds, final_loss = 0, 0, 0, None, 0.0, None
+    if acc.is_main_process:
+        ckpt.remove_stale_tmp(checkpoint_dir)
+    acc.wait_for_everyone()
+    latest = ckpt.latest_checkpoint(checkpoint_dir)
+    if latest is not None:
+        state, rng = ckpt.load_checkpoint(latest, model=acc.unwrap_model(model), optimizer=optimizer,
+                                          scheduler=scheduler)
+        _restore_rng(acc, generator, rng)
+        step, epoch, consumed = state["step"], state["epoch"], state["batches_in_epoch"]
+        resumed_from, prior_seconds, final_loss = step, state.get("seconds", 0.0), state.get("final_loss")
+        acc.print(f"resuming from {latest} (step {step}, epoch {epoch}, batch {consumed})")
+
+    live = _open_live(Path(live_dir), resumed_from) if live_dir is not None and acc.is_main_process else None
+    bar = tqdm(total=cfg.steps, initial=min(step, cfg.steps), unit="step", dynamic_ncols=True,
+               disable=not (progress and acc.is_local_main_process))
+    start, micro = time.perf_counter(), 0
+    win_t, win_n, win_loss, win_scalars = start, 0, torch.zeros((), device=acc.device), {}
+    model.train()
+    while step < cfg.steps:
+        seen = 0
+        for batch in task.batches(epoch):
+            seen += 1
+            if seen <= consumed:  # fast-forward over batches a previous run already trained on
+                continue
+            with acc.accumulate(model):
+                with acc.autocast():
+                    loss, scalars = task.loss(send_to_device(batch, acc.device), generator)
+                acc.backward(loss)  # divides by grad_accum
+                if acc.sync_gradients and manual_sync:
+                    _average_gradients(params, acc.num_processes)
+                if acc.sync_gradients and cfg.max_grad_norm is not None:
+                    acc.clip_grad_norm_(params, cfg.max_grad_norm)
+                optimizer.step()  # these three are no-ops until the last micro-batch of an accumulation
+                scheduler.step()
+                optimizer.zero_grad(set_to_none=True)
+            consumed, micro, win_n = seen, micro + 1, win_n + 1
+            win_loss += loss.detach().float()  # no .item() per micro-batch: avoids a GPU sync
+            for k, v in scalars.items():
+                win_scalars[k] = win_scalars.get(k, 0.0) + float(v)
+            if not acc.sync_gradients:
+                continue
+            step += 1
+            bar.update(1)
+
+            if step % cfg.log_every == 0 or step == cfg.steps:
+                now = time.perf_counter()
+                final_loss = acc.reduce(win_loss / win_n, "mean").item()  # all processes reach this together
+                if not math.isfinite(final_loss):  # stop before a checkpoint of diverged weights replaces a good one
+                    raise FloatingPointError(f"non-finite loss {final_loss} at step {step}")
+                rate = win_n * task.samples_per_batch * acc.num_processes / max(now - win_t, 1e-9)
+                bar.set_postfix(loss=f"{final_loss:.4f}")
+                if live is not None:
+                    live.step = step  # x axis = optimizer step, also across resumes
+                    live.log_metric("loss", final_loss)
+                    for k, v in win_scalars.items():
+                        live.log_metric(k, v / win_n)
+                    live.log_metric("lr", scheduler.get_last_lr()[0])
+                    live.log_metric("samples_per_second", rate)
+                    live.next_step()
+                win_t, win_n, win_loss, win_scalars = now, 0, torch.zeros((), device=acc.device), {}
+
+            if live is not None and step % cfg.image_every == 0:
+                # fork_rng: image sampling on the main process must not shift any training RNG stream.
+                with torch.no_grad(), acc.autocast(), torch.random.fork_rng(devices=[acc.device] if cuda else []):
+                    for name, grid in task.images(send_to_device(batch, acc.device)).items():
+                        live.log_image(f"{name}.png", numpy.asarray(grid))
+                model.train()
+
+            if step % cfg.checkpoint_every == 0 or step == cfg.steps:
+                rng = _rng_tensors(acc, generator)  # collective: every process, before the main one writes
+                if acc.is_main_process:
+                    seconds = prior_seconds + time.perf_counter() - start
+                    ckpt.save_checkpoint(checkpoint_dir, step, model=acc.unwrap_model(model), optimizer=optimizer,
+                                         scheduler=scheduler, rng=rng, keep=cfg.keep_checkpoints,
+                                         progress={"epoch": epoch, "batches_in_epoch": consumed,
+                                                   "seconds": seconds, "final_loss": final_loss})
+                acc.wait_for_everyone()
+            if step >= cfg.steps:
+                break
+        if seen == 0:
+            raise RuntimeError(f"task.batches({epoch}) yielded no batches; an empty epoch would loop forever")
+        if seen < consumed:
+            raise RuntimeError(f"task.batches({epoch}) yielded {seen} batches but the checkpoint consumed "
+                               f"{consumed}: batches() is not deterministic, cannot resume")
+        if step < cfg.steps:  # epoch exhausted (not a mid-epoch stop): next epoch from its first batch
+            epoch, consumed = epoch + 1, 0
+    bar.close()
+
+    seconds = time.perf_counter() - start
+    stats = {
+        "steps": step,
+        "seconds": prior_seconds + seconds,
+        "samples_per_second": micro * task.samples_per_batch * acc.num_processes / max(seconds, 1e-9),
+        "final_loss": final_loss,
+        "resumed_from": resumed_from,
+    }
+    if live is not None:
+        live.summary.update({k: v for k, v in stats.items() if v is not None})
+        live.end()
+    acc.wait_for_everyone()
+    return stats

@@ -1,0 +1,67 @@
+"""DVC stage `train_intrinsics` (stage 1): a diffusion UNet predicting albedo, normal, roughness
+and metallic together, with cross-batch attention and one-hot domain labels (v-prediction,
+masked latent loss).
+
+    python stages/train_intrinsics.py                                  # CPU or one GPU
+    accelerate launch --multi_gpu --num_processes 8 stages/train_intrinsics.py
+    accelerate launch --use_deepspeed --zero_stage 2 stages/train_intrinsics.py   # the paper's ZeRO-2
+
+Reads params `base` and `intrinsics`; data/shards -> models/intrinsics (weights + config),
+checkpoints/intrinsics (resumed automatically after an interruption), dvclive/intrinsics.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pilight.params import ParamsError, load_section  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--params", default="params.yaml")
+    ap.add_argument("--shards", type=Path, default=Path("data/shards"))
+    ap.add_argument("--out", type=Path, default=Path("models/intrinsics"))
+    ap.add_argument("--checkpoints", type=Path, default=Path("checkpoints/intrinsics"))
+    ap.add_argument("--live", type=Path, default=Path("dvclive/intrinsics"))
+    args = ap.parse_args(argv)
+    try:
+        base, p = load_section("base", args.params), load_section("intrinsics", args.params)
+    except ParamsError as exc:
+        print(f"train_intrinsics: {exc}", file=sys.stderr)
+        return 2
+    import torch
+
+    from pilight.data.schema import DataError
+    from pilight.data.shards import read_index
+    from pilight.train.build import ModelError, check_image_size, save_model
+    from pilight.train.intrinsics import IntrinsicsTask
+    from pilight.train.loop import LoopConfig, train
+
+    try:
+        index = read_index(args.shards)
+        if not index["splits"].get("train", {}).get("shards"):
+            raise DataError(f"{args.shards}: the train split has no shards")
+        task = IntrinsicsTask(p, args.shards, seed=base.seed)
+        check_image_size(tuple(index["sizes"]["image"][:2]), task.stack.codec.factor, f"{args.shards}/index.json")
+    except (DataError, ModelError, FileNotFoundError, ValueError) as exc:
+        print(f"train_intrinsics: {exc}", file=sys.stderr)
+        return 1
+    torch.manual_seed(base.seed)
+    t = p.train
+    cfg = LoopConfig(steps=t.steps, lr=t.lr, weight_decay=t.weight_decay, warmup_steps=t.warmup_steps,
+                     grad_accum=t.grad_accum, mixed_precision=t.mixed_precision, checkpoint_every=t.checkpoint_every,
+                     keep_checkpoints=t.keep_checkpoints, log_every=t.log_every, image_every=t.image_every, seed=base.seed)
+    stats = train(task, cfg, args.checkpoints, args.live)
+    save_model(task.stack, args.out, p.model_dump(mode="json"))
+    print(f"train_intrinsics: {stats['steps']} steps in {stats['seconds']:.0f} s "
+          f"({stats['samples_per_second']:.2f} samples/s), final loss {stats['final_loss']:.4f} -> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

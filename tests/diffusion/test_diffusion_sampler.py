@@ -1,0 +1,144 @@
+"""DomainDiffusion (model.py) and the sampler (sampler.py)."""
+
+import pytest
+import torch
+
+from pilight.diffusion.conditioning import LearnedEmbedding
+from pilight.diffusion.model import DomainDiffusion
+from pilight.diffusion.sampler import sample
+from pilight.diffusion.schedule import make_train_scheduler
+from pilight.diffusion.unet import UNetSpec, build_unet
+
+TINY = UNetSpec(sample_size=8, block_out_channels=(32, 32), layers_per_block=1, attention_head_dim=4,
+                cross_attention_dim=16, norm_num_groups=8,
+                down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"), up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"))
+LATENT, COND, DOMAINS = 4, 6, 4
+
+
+def _model(cross_batch=True, views=4):
+    torch.manual_seed(0)
+    unet = build_unet(TINY, in_channels=LATENT + COND, out_channels=LATENT, num_domains=DOMAINS)
+    return DomainDiffusion(unet, LearnedEmbedding(16), DOMAINS, COND, num_views=views, cross_batch=cross_batch).eval()
+
+
+def _inputs(samples, views, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    n = samples * views
+    cond = torch.randn(samples, COND, 8, 8, generator=g).repeat_interleave(views, 0)  # same image for all views
+    ids = torch.arange(views).repeat(samples)
+    ehs = torch.randn(samples, 1, 16, generator=g).repeat_interleave(views, 0)
+    return cond, ids, ehs, n
+
+
+def test_forward_shapes_padding_and_bf16():
+    model = _model()
+    cond, ids, ehs, n = _inputs(2, 4)
+    x, t = torch.randn(n, LATENT, 8, 8), torch.full((n,), 300)
+    with torch.no_grad():
+        v = model(x, cond, t, ids, ehs)
+        assert v.shape == (n, LATENT, 8, 8)
+        # a narrower condition (a Stage 2 branch with fewer inputs) is zero-padded on channels
+        narrow = model(x, cond[:, :2], t, ids, ehs)
+        padded = model(x, torch.cat([cond[:, :2], torch.zeros(n, 4, 8, 8)], 1), t, ids, ehs)
+        assert torch.equal(narrow, padded)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            v16 = model(x, cond, t, ids, ehs)
+    assert v16.dtype == torch.bfloat16 and torch.isfinite(v16).all()
+
+
+def test_forward_errors_name_numbers():
+    model = _model()
+    cond, ids, ehs, n = _inputs(1, 4)
+    x, t = torch.randn(n, LATENT, 8, 8), torch.full((n,), 3)
+    with pytest.raises(ValueError, match=r"48 channels.*predicts 4"):
+        model(torch.randn(n, 48, 8, 8), cond, t, ids, ehs)
+    with pytest.raises(ValueError, match=r"7 channels.*at most 6"):
+        model(x, torch.randn(n, 7, 8, 8), t, ids, ehs)
+    with pytest.raises(ValueError, match="domain_ids"):
+        model(x, cond, t, ids + 1, ehs)
+    with pytest.raises(ValueError, match="num_views"):
+        model(x[:3], cond[:3], t[:3], ids[:3], ehs[:3])
+    with pytest.raises(ValueError, match=r"cross_attention_dim is 16"):
+        DomainDiffusion(model.unet, LearnedEmbedding(8), DOMAINS, COND)
+    with pytest.raises(ValueError, match=r"latent \(4\) \+ condition \(5\)"):
+        DomainDiffusion(model.unet, LearnedEmbedding(16), DOMAINS, 5)
+
+
+def test_deterministic_with_seed_and_modes():
+    model = _model()
+    cond, ids, ehs, _ = _inputs(2, 4)
+    run = lambda seed, **kw: sample(model, cond, ids, ehs, num_views=4, generator=torch.Generator().manual_seed(seed), **kw)
+    a, b = run(0, steps=3), run(0, steps=3)
+    assert a.shape == (8, LATENT, 8, 8) and torch.equal(a, b)
+    assert not torch.equal(a, run(1, steps=3))
+    # trailing DDIM with one step is exactly the single-step x0 prediction at t = T-1
+    torch.testing.assert_close(run(0, steps=1), run(0, mode="single_step"), atol=1e-5, rtol=0)
+    zero_snr = make_train_scheduler(rescale_zero_snr=True, timestep_spacing="trailing").config
+    for mode in ("ddim", "single_step"):
+        assert torch.isfinite(run(0, steps=2, mode=mode, scheduler_config=zero_snr)).all()
+
+
+def test_cfg_groups_cond_and_uncond_separately():
+    model = _model()
+    cond, ids, ehs, n = _inputs(2, 4)
+    noise = torch.randn(n, LATENT, 8, 8, generator=torch.Generator().manual_seed(3))
+    null = torch.randn_like(ehs)
+    s = 3.0
+    out = sample(model, cond, ids, ehs, num_views=4, mode="single_step", cfg_scale=s, noise=noise,
+                 null_hidden_states=null)
+    # reference: two separate (unbatched) calls
+    sched = make_train_scheduler()
+    t = torch.full((n,), 999)
+    with torch.no_grad():
+        v_c = model(noise, cond, t, ids, ehs)
+        v_u = model(noise, torch.zeros_like(cond), t, ids, null)
+    v = v_u + s * (v_c - v_u)
+    a = sched.alphas_cumprod[999]
+    torch.testing.assert_close(out, a.sqrt() * noise - (1 - a).sqrt() * v, atol=1e-5, rtol=1e-5)
+
+
+def test_ensemble_is_mean_of_members():
+    model = _model()
+    cond, ids, ehs, n = _inputs(1, 4)
+    noise = torch.randn(3 * n, LATENT, 8, 8, generator=torch.Generator().manual_seed(5))
+    out = sample(model, cond, ids, ehs, num_views=4, steps=2, ensemble=3, noise=noise)
+    members = [sample(model, cond, ids, ehs, num_views=4, steps=2, noise=noise[k * n:(k + 1) * n]) for k in range(3)]
+    torch.testing.assert_close(out, torch.stack(members).mean(0), atol=1e-5, rtol=1e-5)
+    with pytest.raises(ValueError, match="noise must have shape"):
+        sample(model, cond, ids, ehs, num_views=4, ensemble=2, noise=noise)
+
+
+@pytest.mark.parametrize("cross_batch", [False, True])
+def test_domain_subset_differs_only_by_cross_view_attention(cross_batch):
+    """Albedo alone (V=1) vs all four domains (V=4) from the same albedo noise: identical
+    plumbing, so without cross-batch attention the albedo output is the same; with it, the
+    other views change the albedo."""
+    model = _model(cross_batch=cross_batch)
+    cond, ids, ehs, n = _inputs(1, 4)
+    noise = torch.randn(n, LATENT, 8, 8, generator=torch.Generator().manual_seed(7))
+    all4 = sample(model, cond, ids, ehs, num_views=4, steps=2, noise=noise)
+    albedo = sample(model, cond[:1], ids[:1], ehs[:1], num_views=1, steps=2, noise=noise[:1])
+    assert albedo.shape == (1, LATENT, 8, 8)
+    assert model.num_views == 4  # the sampler restores the model's grouping
+    if cross_batch:
+        assert (all4[:1] - albedo).abs().max() > 1e-4
+    else:
+        torch.testing.assert_close(all4[:1], albedo, atol=1e-5, rtol=1e-5)
+
+
+def test_model_keeps_installed_attention_and_set_views_is_reversible():
+    from pilight.diffusion.attention import set_cross_batch_attention
+
+    torch.manual_seed(0)
+    unet = build_unet(TINY, in_channels=LATENT + COND, out_channels=LATENT, num_domains=DOMAINS)
+    set_cross_batch_attention(unet, None)  # the ablation, chosen before the model is built
+    model = DomainDiffusion(unet, LearnedEmbedding(16), DOMAINS, COND)
+    assert not model.cross_batch and model.num_views == DOMAINS
+
+    set_cross_batch_attention(unet, 2)
+    model = DomainDiffusion(unet, LearnedEmbedding(16), DOMAINS, COND)
+    assert model.cross_batch and model.num_views == 2
+    model.set_views(1)  # one domain at a time: same math as vanilla, but stays switchable
+    model.set_views(4)
+    assert model.cross_batch
+    assert {p.num_views for p in unet.attn_processors.values() if hasattr(p, "num_views")} == {4}

@@ -1,0 +1,147 @@
+"""Stage 1 (intrinsics): the task's loss and prediction, and the train / infer / evaluate scripts."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from pilight.data.shard_params import ShardParams
+from pilight.data.shards import intrinsics_dataset, make_loader, write_shards
+from pilight.params import DOMAINS, IntrinsicsParams, SamplingParams
+from pilight.train.intrinsics import IntrinsicsTask, domain_targets, latent_mask, masked_latent_mse, targets_to_maps
+from tests.data.test_shards import write_fake_renders
+
+REPO = Path(__file__).resolve().parents[2]
+TINY = {"unet": {"block_out_channels": [32, 32], "layers_per_block": 1, "attention_head_dim": 8, "cross_attention_dim": 32},
+        "codec": {"kind": "pixel", "factor": 4},
+        "train": {"steps": 4, "batch_size": 2, "checkpoint_every": 2, "image_every": 2, "log_every": 1, "warmup_steps": 0}}
+
+
+@pytest.fixture(scope="module")
+def shards(tmp_path_factory):
+    d = tmp_path_factory.mktemp("s1")
+    renders = write_fake_renders(d / "renders", size=16, ball=8)
+    write_shards(renders, d / "shards", ShardParams(), seed=3)
+    return d / "shards"
+
+
+def _batch(shards, n=2):
+    return next(iter(make_loader(intrinsics_dataset(shards, "train", shuffle=False), n)))
+
+
+def test_masked_latent_loss_is_zero_on_an_empty_mask():
+    v, t = torch.randn(4, 12, 4, 4), torch.randn(4, 12, 4, 4)
+    assert masked_latent_mse(v, t, torch.zeros(4, 1, 4, 4)) == 0
+    full = masked_latent_mse(v, t, torch.ones(4, 1, 4, 4))
+    assert torch.isclose(full, torch.nn.functional.mse_loss(v, t))
+
+
+def test_latent_mask_keeps_majority_cells():
+    m = torch.zeros(1, 1, 8, 8)
+    m[..., :4, :] = 1
+    m[..., 4, 0] = 1  # a stray pixel does not make its cell reliable
+    z = latent_mask(m, 4)
+    assert z.shape == (1, 1, 2, 2) and z[0, 0].tolist() == [[1.0, 1.0], [0.0, 0.0]]
+
+
+def test_targets_round_trip(shards):
+    b = _batch(shards)
+    back = targets_to_maps(domain_targets(b), DOMAINS)
+    for d in ("albedo", "roughness", "metallic"):
+        torch.testing.assert_close(back[d], b[d], atol=1e-5, rtol=0)
+    m = b["mask"] > 0.5
+    cos = (back["normal"] * b["normal"]).sum(1, keepdim=True)
+    assert (cos[m] > 0.999).all()
+
+
+@pytest.mark.parametrize("t_fixed", [0, 999, None])
+def test_loss_finite_at_both_ends_of_the_schedule(shards, t_fixed, monkeypatch):
+    task = IntrinsicsTask(IntrinsicsParams.model_validate(TINY), shards, seed=0)
+    if t_fixed is not None:
+        monkeypatch.setattr(torch, "randint", lambda lo, hi, size, generator=None: torch.full(size, t_fixed))
+    loss, logs = task.loss(_batch(shards), torch.Generator().manual_seed(0))
+    assert torch.isfinite(loss) and loss > 0
+    loss.backward()
+    assert all(torch.isfinite(p.grad).all() for p in task.trainable().parameters() if p.grad is not None)
+
+
+def test_bf16_autocast_loss_is_finite(shards):
+    task = IntrinsicsTask(IntrinsicsParams.model_validate(TINY), shards, seed=0)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        loss, _ = task.loss(_batch(shards), torch.Generator().manual_seed(0))
+    assert torch.isfinite(loss)
+
+
+def test_predict_a_subset_of_domains(shards):
+    task = IntrinsicsTask(IntrinsicsParams.model_validate(TINY), shards, seed=0)
+    b = _batch(shards)
+    sp = SamplingParams(steps=2)
+    full = task.predict(b["image"], DOMAINS, sp, torch.Generator().manual_seed(1))
+    sub = task.predict(b["image"], ("albedo", "normal"), sp, torch.Generator().manual_seed(1))
+    assert set(full) == set(DOMAINS) and set(sub) == {"albedo", "normal"}
+    assert full["roughness"].shape == (2, 1, 16, 16) and full["albedo"].shape == (2, 3, 16, 16)
+    assert (full["albedo"] >= 0).all() and (full["albedo"] <= 1).all()
+    torch.testing.assert_close(full["normal"].norm(dim=1), torch.ones(2, 16, 16), atol=1e-4, rtol=0)
+    assert task.stack.model.num_views == 4, "a subset call leaves the model's view count as it was"
+
+
+def _params(tmp_path, **intrinsics) -> Path:
+    p = yaml.safe_load((REPO / "params.yaml").read_text())
+    for k, v in {**TINY, **intrinsics}.items():
+        p["intrinsics"][k] = {**p["intrinsics"].get(k, {}), **v} if isinstance(v, dict) else v
+    p["infer_intrinsics"].update({"steps": 2, "splits": ["train", "test"]})
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(p))
+    return path
+
+
+def _run(script, *args):
+    return subprocess.run([sys.executable, str(REPO / "stages" / script), *map(str, args)],
+                          capture_output=True, text=True, cwd=REPO, timeout=600)
+
+
+@pytest.mark.slow
+def test_train_infer_evaluate_scripts(shards, tmp_path):
+    params = _params(tmp_path)
+    r = _run("train_intrinsics.py", "--params", params, "--shards", shards, "--out", tmp_path / "model",
+             "--checkpoints", tmp_path / "ckpt", "--live", tmp_path / "live")
+    assert r.returncode == 0, r.stderr
+    assert json.loads((tmp_path / "live" / "metrics.json").read_text())["steps"] == 4
+    assert (tmp_path / "live" / "plots" / "images" / "intrinsics_grid.png").is_file()
+    r = _run("infer_intrinsics.py", "--params", params, "--shards", shards, "--model", tmp_path / "model",
+             "--out", tmp_path / "pred", "--metrics", tmp_path / "infer.json")
+    assert r.returncode == 0, r.stderr
+    index = json.loads((tmp_path / "pred" / "index.json").read_text())
+    assert index["splits"]["train"]["samples"] == 9 and index["parts"]["conditioning"] == "learned-embedding"
+    r = _run("evaluate.py", "--params", params, "--shards", shards, "--pred", tmp_path / "pred",
+             "--metrics", tmp_path / "eval.json", "--reports", tmp_path / "reports")
+    assert r.returncode == 0, r.stderr
+    result = json.loads((tmp_path / "eval.json").read_text())["intrinsics"]
+    assert set(result["model"]) >= {"albedo_psnr", "normal_mean_deg", "roughness_mae", "metallic_mae"}
+    assert "| albedo PSNR" in (tmp_path / "reports" / "intrinsics.md").read_text()
+
+
+@pytest.mark.parametrize("change, needle, code", [
+    ({"unet": {"init": "pretrained", "path": "/no/such/unet"}}, "unet.path '/no/such/unet' does not exist", 2),
+    ({"codec": {"kind": "vae", "path": None}}, "codec.path is not set", 2),
+    ({"codec": {"kind": "pixel", "factor": 3}}, "not divisible by the codec factor 3", 1),
+])
+def test_bad_model_input_fails_before_training(shards, tmp_path, change, needle, code):
+    r = _run("train_intrinsics.py", "--params", _params(tmp_path, **change), "--shards", shards,
+             "--out", tmp_path / "model", "--checkpoints", tmp_path / "ckpt", "--live", tmp_path / "live")
+    assert r.returncode == code and needle in r.stderr, r.stderr
+    assert not (tmp_path / "ckpt").exists()
+
+
+def test_empty_shard_list_is_an_error(tmp_path):
+    (tmp_path / "shards").mkdir()
+    (tmp_path / "shards" / "index.json").write_text(json.dumps({"splits": {"train": {"shards": [], "samples": 0}}, "sizes": {}}))
+    r = _run("train_intrinsics.py", "--params", _params(tmp_path), "--shards", tmp_path / "shards",
+             "--out", tmp_path / "model", "--checkpoints", tmp_path / "ckpt", "--live", tmp_path / "live")
+    assert r.returncode == 1 and "train split has no shards" in r.stderr, r.stderr

@@ -1,0 +1,226 @@
+"""pilight.train.loop: bit-exact resume, epochs, mixed precision, dvclive outputs."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from accelerate.state import AcceleratorState
+
+from pilight.train import checkpoint as ckpt
+from pilight.train.loop import LoopConfig, train
+
+
+@pytest.fixture(autouse=True)
+def _fresh_accelerate_state():
+    # accelerate keeps process-wide singletons; mixed_precision cannot change between Accelerators otherwise.
+    AcceleratorState._reset_state(True)
+    yield
+    AcceleratorState._reset_state(True)
+
+
+class ToyTask:
+    """Denoise a fixed linear map; noise, timesteps and dropout all come from the loop's generator."""
+
+    samples_per_batch = 4
+
+    def __init__(self, n_batches: int = 5, crash_after: int | None = None, model_seed: int = 123):
+        torch.manual_seed(model_seed)  # different init per run would be fine too: weights are restored
+        self.net = torch.nn.Sequential(torch.nn.Linear(8, 16), torch.nn.GELU(), torch.nn.Linear(16, 8))
+        self.n_batches, self.crash_after, self.calls = n_batches, crash_after, 0
+
+    def trainable(self) -> torch.nn.Module:
+        return self.net
+
+    def batches(self, epoch: int):
+        g = torch.Generator().manual_seed(1000 + epoch)  # deterministic per epoch, reshuffled per epoch
+        for _ in range(self.n_batches):
+            x = torch.randn(self.samples_per_batch, 8, generator=g)
+            yield {"x": x, "y": x.flip(-1) * 0.5}
+
+    def loss(self, batch, generator):
+        self.calls += 1
+        if self.crash_after is not None and self.calls > self.crash_after:
+            raise KeyboardInterrupt("simulated kill")
+        t = torch.rand(batch["x"].shape[0], 1, generator=generator)
+        noise = torch.randn(batch["x"].shape, generator=generator)
+        keep = (torch.rand(batch["x"].shape, generator=generator) > 0.1).float()
+        pred = self.net((batch["x"] + t * noise) * keep)
+        loss = torch.nn.functional.mse_loss(pred.float(), batch["y"])
+        return loss, {"t_mean": float(t.mean())}
+
+    def images(self, batch):
+        pred = self.net(batch["x"]).float()
+        v = ((pred - pred.min()) / (pred.max() - pred.min() + 1e-8) * 255).to(torch.uint8).cpu().numpy()
+        return {"grid": np.repeat(np.repeat(v, 4, 0)[..., None], 3, -1)}  # H=16, W=8, 3
+
+
+def cfg(**kw) -> LoopConfig:
+    base = dict(steps=12, lr=1e-2, warmup_steps=3, checkpoint_every=4, keep_checkpoints=2, log_every=2, image_every=5)
+    return LoopConfig(**{**base, **kw})
+
+
+def weights(task: ToyTask) -> dict[str, torch.Tensor]:
+    return {k: v.detach().clone() for k, v in task.net.state_dict().items()}
+
+
+def assert_bit_equal(a: dict, b: dict) -> None:
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+
+
+@pytest.mark.parametrize("grad_accum", [1, 2])
+def test_stop_and_resume_is_bit_exact(tmp_path: Path, grad_accum: int):
+    # 5 batches/epoch with accumulation 2: optimizer steps straddle epoch boundaries, resume lands mid-epoch.
+    ref = ToyTask()
+    out_ref = train(ref, cfg(grad_accum=grad_accum), tmp_path / "ref", None, progress=False)
+    assert out_ref["steps"] == 12 and out_ref["resumed_from"] is None
+
+    first = ToyTask()  # same init as the reference run
+    train(first, cfg(grad_accum=grad_accum, steps=7), tmp_path / "split", None, progress=False)
+    assert ckpt.latest_checkpoint(tmp_path / "split").name == "step_0000007"  # final checkpoint at stop
+    second = ToyTask(model_seed=99)  # fresh process: different init, weights come from the checkpoint
+    out = train(second, cfg(grad_accum=grad_accum), tmp_path / "split", None, progress=False)
+    assert out["resumed_from"] == 7 and out["steps"] == 12
+    assert_bit_equal(weights(ref), weights(second))
+    assert out["final_loss"] == out_ref["final_loss"]
+
+
+def test_resume_after_crash_is_bit_exact(tmp_path: Path):
+    ref = ToyTask()
+    train(ref, cfg(), tmp_path / "ref", None, progress=False)
+
+    crashing = ToyTask(crash_after=10)  # dies during step 11; last checkpoint is step 8
+    with pytest.raises(KeyboardInterrupt):
+        train(crashing, cfg(), tmp_path / "run", tmp_path / "live", progress=False)
+    assert ckpt.latest_checkpoint(tmp_path / "run").name == "step_0000008"
+    AcceleratorState._reset_state(True)
+    resumed = ToyTask()
+    out = train(resumed, cfg(), tmp_path / "run", tmp_path / "live", progress=False)
+    assert out["resumed_from"] == 8
+    assert_bit_equal(weights(ref), weights(resumed))
+
+    # dvclive history continues at step 8 without duplicated rows from the crashed run (it logged step 10).
+    rows = list(csv.DictReader(open(tmp_path / "live/plots/metrics/loss.tsv"), delimiter="\t"))
+    assert [int(r["step"]) for r in rows] == [2, 4, 6, 8, 10, 12]
+
+
+def test_already_finished_run_does_nothing(tmp_path: Path):
+    task = ToyTask()
+    first = train(task, cfg(steps=4), tmp_path / "c", None, progress=False)
+    before = weights(task)
+    again = train(ToyTask(), cfg(steps=4), tmp_path / "c", None, progress=False)
+    assert again["resumed_from"] == 4 and again["steps"] == 4
+    assert again["final_loss"] == first["final_loss"]
+    assert ckpt.latest_checkpoint(tmp_path / "c").name == "step_0000004"
+    assert_bit_equal(before, weights(task))
+
+
+def test_retention_keeps_newest(tmp_path: Path):
+    train(ToyTask(), cfg(steps=12, checkpoint_every=2, keep_checkpoints=2), tmp_path / "c", None, progress=False)
+    names = sorted(p.name for p in (tmp_path / "c").iterdir())
+    assert names == ["step_0000010", "step_0000012"]
+
+
+def test_empty_epoch_raises(tmp_path: Path):
+    with pytest.raises(RuntimeError, match="no batches"):
+        train(ToyTask(n_batches=0), cfg(), tmp_path / "c", None, progress=False)
+
+
+def test_nondeterministic_epoch_detected_on_resume(tmp_path: Path):
+    train(ToyTask(n_batches=5), cfg(steps=4), tmp_path / "c", None, progress=False)  # stops at batch 4 of epoch 0
+    with pytest.raises(RuntimeError, match="not deterministic"):
+        train(ToyTask(n_batches=2), cfg(steps=8), tmp_path / "c", None, progress=False)
+
+
+def test_bf16_on_cpu_is_finite(tmp_path: Path):
+    out = train(ToyTask(), cfg(mixed_precision="bf16", steps=6), tmp_path / "c", None, progress=False)
+    assert np.isfinite(out["final_loss"])
+
+
+def test_fp16_on_cpu_falls_back_to_fp32(tmp_path: Path):
+    if torch.cuda.is_available():
+        pytest.skip("CPU-only behaviour")
+    with pytest.warns(UserWarning, match="fp32"):
+        out = train(ToyTask(), cfg(mixed_precision="fp16", steps=2), tmp_path / "c", None, progress=False)
+    assert np.isfinite(out["final_loss"])
+
+
+def test_dvclive_outputs(tmp_path: Path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # no git/DVC repo around: dvclive must still work offline
+    out = train(ToyTask(), cfg(steps=10), tmp_path / "ckpt", tmp_path / "live", progress=True)
+    live = tmp_path / "live"
+    metrics = json.loads((live / "metrics.json").read_text())
+    assert metrics["steps"] == 10 and metrics["step"] == 10
+    assert metrics["final_loss"] == pytest.approx(out["final_loss"]) == pytest.approx(metrics["loss"])
+    assert metrics["seconds"] > 0 and metrics["samples_per_second"] > 0
+    for name in ("loss", "lr", "samples_per_second", "t_mean"):
+        rows = list(csv.DictReader(open(live / f"plots/metrics/{name}.tsv"), delimiter="\t"))
+        assert [int(r["step"]) for r in rows] == [2, 4, 6, 8, 10], name
+    lrs = [float(r["lr"]) for r in csv.DictReader(open(live / "plots/metrics/lr.tsv"), delimiter="\t")]
+    assert lrs[0] == pytest.approx(1e-2 * 2 / 3) and lrs[-1] == pytest.approx(1e-2)  # warmup 3 then constant
+    from PIL import Image
+
+    img = np.asarray(Image.open(live / "plots/images/grid.png"))
+    assert img.shape == (16, 8, 3) and img.dtype == np.uint8
+    assert not (live / "dvc.yaml").exists() and not (tmp_path / "dvc.yaml").exists()
+    assert set(out) == {"steps", "seconds", "samples_per_second", "final_loss", "resumed_from"}
+
+
+def test_invalid_config():
+    with pytest.raises(ValueError):
+        LoopConfig(steps=10, grad_accum=0)
+    with pytest.raises(ValueError):
+        LoopConfig(steps=10, mixed_precision="fp8")
+
+
+_TWO_PROCESS_SCRIPT = """
+import os, sys, torch
+sys.path.insert(0, {here!r})
+from test_train_loop import ToyTask, cfg
+from pilight.train.loop import train
+from safetensors.torch import save_file
+out, rank = sys.argv[1], os.environ["RANK"]
+for name, steps in (("ref", 12), ("split", 7), ("split", 12)):
+    task = ToyTask(model_seed=int(rank))  # different init per rank: the loop must broadcast rank 0's
+    stats = train(task, cfg(steps=steps), f"{{out}}/{{name}}", None, progress=False)
+    save_file({{k: v.contiguous() for k, v in task.net.state_dict().items()}}, f"{{out}}/{{name}}-{{rank}}.st")
+"""
+
+
+def test_two_processes_sync_and_resume(tmp_path: Path):
+    """torchrun, 2 CPU processes (gloo): gradients are averaged, ranks agree, resume is bit-exact."""
+    import os
+    import subprocess
+    import sys
+
+    from safetensors.torch import load_file
+
+    script = tmp_path / "two.py"
+    script.write_text(_TWO_PROCESS_SCRIPT.format(here=str(Path(__file__).parent)))
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).parents[2])}
+    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                           str(script), str(tmp_path)], env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    w = {(n, r): load_file(str(tmp_path / f"{n}-{r}.st")) for n in ("ref", "split") for r in (0, 1)}
+    assert_bit_equal(w["ref", 0], w["ref", 1])
+    assert_bit_equal(w["ref", 0], w["split", 0])
+    assert_bit_equal(w["ref", 1], w["split", 1])
+    with ckpt.safe_open(str(ckpt.latest_checkpoint(tmp_path / "split") / ckpt.STATE_FILE), framework="pt") as fh:
+        assert {"rank0.generator", "rank1.generator"} <= set(fh.keys())
+
+
+def test_non_finite_loss_stops_training(tmp_path: Path):
+    class NanTask(ToyTask):
+        def loss(self, batch, generator):
+            loss, scalars = super().loss(batch, generator)
+            return loss * float("nan") if self.calls > 3 else loss, scalars
+
+    with pytest.raises(FloatingPointError, match="step 4"):
+        train(NanTask(), cfg(log_every=2, checkpoint_every=2), tmp_path / "c", None, progress=False)
+    assert ckpt.latest_checkpoint(tmp_path / "c").name == "step_0000002"  # the good one survives
