@@ -260,13 +260,43 @@ class TrainParams(_Section):
     num_workers: int = Field(0, ge=0)
 
 
-class IntrinsicsParams(_Section):
+class ModelParams(_Section):
+    """What both diffusion stages share: built by pilight.train.build.build_stack."""
+
     codec: CodecParams = CodecParams()
     unet: UNetParams = UNetParams()
     conditioning: ConditioningParams = ConditioningParams()
     cross_batch_attention: bool = Field(True, description="false = the ablation: vanilla self-attention")
     schedule: ScheduleParams = ScheduleParams()
     train: TrainParams = TrainParams()
+
+
+class IntrinsicsParams(ModelParams):
+    albedo_space: Literal["linear", "srgb"] = Field(
+        "srgb", description="space the albedo is predicted in (Marigold habit): srgb spreads dark albedos over [-1, 1]")
+
+
+class RelightParams(ModelParams):
+    """Stage 2: L = L_vpred + (1/t)(lambda_ds L_DS + lambda_ps L_PS + lambda_rec L_rec)."""
+
+    decomposition: bool = Field(True, description="false = the paper's ablation without the diffuse/specular branches")
+    lambda_ds: float = Field(1.0, ge=0.0, description="lambda_1, diffuse-shading loss")
+    lambda_ps: float = Field(1.0, ge=0.0, description="lambda_2, physical-shading loss")
+    lambda_rec: float = Field(0.1, ge=0.0, description="lambda_3, reconstruction (feature) loss")
+    t_min: float = Field(1.0, gt=0.0, description="floor of t in the 1/t weight")
+    rec_features: Literal["pooled-rgb", "dinov2"] = Field("pooled-rgb", description="dinov2 = the paper (needs dinov2_path)")
+    dinov2_path: str | None = None
+    conditions: Literal["gt", "pred", "mix"] = Field("mix", description="intrinsics given to the model while training")
+    pred_probability: float = Field(0.5, ge=0.0, le=1.0, description="share of stage-1 predictions when conditions: mix")
+    ds_ball: Literal["gray", "lambertian"] = Field("gray", description="ball unfolded for D_calculated (paper: gray)")
+
+    @model_validator(mode="after")
+    def _dinov2(self) -> "RelightParams":
+        if self.rec_features == "dinov2" and not self.dinov2_path:
+            raise ValueError("rec_features is 'dinov2' but dinov2_path is not set (a local DINOv2 folder)")
+        if self.dinov2_path and not Path(self.dinov2_path).is_dir():
+            raise ValueError(f"dinov2_path {self.dinov2_path!r} does not exist")
+        return self
 
 
 class SamplingParams(_Section):
@@ -276,6 +306,11 @@ class SamplingParams(_Section):
     timestep_spacing: Literal["leading", "trailing", "linspace"] = "trailing"
     ensemble: int = Field(1, ge=1)
     batch_size: int = Field(4, ge=1)
+
+
+class RelightInferParams(SamplingParams):
+    cfg_scale: float = Field(1.5, ge=0.0, description="the paper uses 1.5 in stage 2")
+    split: Literal["val", "test"] = "test"
 
 
 class InferIntrinsicsParams(SamplingParams):
@@ -296,6 +331,7 @@ from pilight.data.shard_params import ShardParams  # noqa: E402  (the shard stag
 SECTIONS: dict[str, type[BaseModel]] = {
     "base": BaseParams, "render": RenderParams, "shard": ShardParams,
     "intrinsics": IntrinsicsParams, "infer_intrinsics": InferIntrinsicsParams,
+    "relight": RelightParams, "relight_infer": RelightInferParams,
 }
 
 

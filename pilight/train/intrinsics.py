@@ -23,16 +23,28 @@ from pilight.params import DOMAINS, IntrinsicsParams, SamplingParams
 from pilight.train.build import Stack, build_stack
 
 
-def domain_targets(batch: dict, domains: tuple[str, ...] = DOMAINS) -> torch.Tensor:
-    """(B, V, 3, H, W) in [-1, 1]; 1-channel maps are replicated to 3 so every domain has one latent shape."""
+def linear_to_srgb(x: torch.Tensor) -> torch.Tensor:
+    x = x.clamp(0, 1)
+    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(0.0031308) ** (1 / 2.4) - 0.055)
+
+
+def srgb_to_linear(y: torch.Tensor) -> torch.Tensor:
+    y = y.clamp(0, 1)
+    return torch.where(y <= 0.04045, y / 12.92, ((y + 0.055) / 1.055) ** 2.4)
+
+
+def domain_targets(batch: dict, domains: tuple[str, ...] = DOMAINS, albedo_space: str = "linear") -> torch.Tensor:
+    """(B, V, 3, H, W) in [-1, 1]; 1-channel maps are replicated to 3 so every domain has one latent shape.
+    albedo_space "srgb": the albedo is predicted in sRGB (decoded back to linear by targets_to_maps)."""
     maps = []
     for d in domains:
-        x = schema.to_model(d, batch[d])
+        x = batch[d]
+        x = schema.to_model(d, linear_to_srgb(x) if d == "albedo" and albedo_space == "srgb" else x)
         maps.append(x.expand(-1, 3, -1, -1) if x.shape[1] == 1 else x)
     return torch.stack(maps, dim=1)
 
 
-def targets_to_maps(x: torch.Tensor, domains: tuple[str, ...]) -> dict[str, torch.Tensor]:
+def targets_to_maps(x: torch.Tensor, domains: tuple[str, ...], albedo_space: str = "linear") -> dict[str, torch.Tensor]:
     """Inverse of `domain_targets` for predictions (B, V, 3, H, W) -> linear maps in their ranges."""
     out = {}
     for i, d in enumerate(domains):
@@ -42,7 +54,8 @@ def targets_to_maps(x: torch.Tensor, domains: tuple[str, ...]) -> dict[str, torc
         elif d in ("roughness", "metallic"):
             out[d] = schema.from_model(d, y.mean(dim=1, keepdim=True)).clamp(0, 1)
         else:
-            out[d] = schema.from_model(d, y).clamp(0, 1)
+            a = schema.from_model(d, y).clamp(0, 1)
+            out[d] = srgb_to_linear(a) if albedo_space == "srgb" else a
     return out
 
 
@@ -87,7 +100,7 @@ class IntrinsicsTask:
         image = schema.to_model("image", batch["image"]).to(dev)
         B = image.shape[0]
         with torch.no_grad():
-            z0 = s.codec.encode(domain_targets(batch).flatten(0, 1).to(dev))
+            z0 = s.codec.encode(domain_targets(batch, DOMAINS, self.p.albedo_space).flatten(0, 1).to(dev))
             z_cond = s.codec.encode(image).repeat_interleave(V, 0)
         m = latent_mask(batch["mask"].to(dev), s.codec.factor).repeat_interleave(V, 0)
         # One timestep per sample, shared by its V domains: they denoise together.
@@ -118,7 +131,7 @@ class IntrinsicsTask:
                     timestep_spacing=sp.timestep_spacing, mode=sp.mode, ensemble=sp.ensemble, generator=generator,
                     null_hidden_states=s.null_condition(ehs), scheduler_config=s.scheduler.config)
         pred = s.codec.decode(z0).float().unflatten(0, (B, V))
-        return targets_to_maps(pred, domains)
+        return targets_to_maps(pred, domains, self.p.albedo_space)
 
     @torch.no_grad()
     def images(self, batch: dict) -> dict[str, np.ndarray]:

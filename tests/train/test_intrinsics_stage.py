@@ -50,9 +50,10 @@ def test_latent_mask_keeps_majority_cells():
     assert z.shape == (1, 1, 2, 2) and z[0, 0].tolist() == [[1.0, 1.0], [0.0, 0.0]]
 
 
-def test_targets_round_trip(shards):
+@pytest.mark.parametrize("space", ["linear", "srgb"])
+def test_targets_round_trip(shards, space):
     b = _batch(shards)
-    back = targets_to_maps(domain_targets(b), DOMAINS)
+    back = targets_to_maps(domain_targets(b, DOMAINS, space), DOMAINS, space)
     for d in ("albedo", "roughness", "metallic"):
         torch.testing.assert_close(back[d], b[d], atol=1e-5, rtol=0)
     m = b["mask"] > 0.5
