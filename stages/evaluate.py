@@ -2,9 +2,12 @@
 
     python stages/evaluate.py
 
-Now: stage 1 (intrinsics) in the paper's Table 1 / Table 7 layout -> metrics.json (dvc metrics,
-shown by `dvc exp show`) and reports/intrinsics.md. Relighting tables and the speed/accuracy
-sweeps join when stage 2 lands (issue #7).
+Stage 1 (intrinsics) in the paper's Table 1 / Table 7 layout, and stage 2 (relighting: PSNR/SSIM
+in the relight and reconstruction settings beside "copy the input" and analytic A * D_calc, the
+A D + S residual, the flipped-normal check) -> metrics.json (dvc metrics, shown by `dvc exp show`),
+reports/intrinsics.md and reports/relight.md. The relit predictions default to the `relit` folder
+beside the shards (data/relit); when that folder does not exist the relighting part is skipped and
+metrics.json says so.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--params", default="params.yaml")
     ap.add_argument("--shards", type=Path, default=Path("data/shards"))
     ap.add_argument("--pred", type=Path, default=Path("data/intrinsics_pred"))
+    ap.add_argument("--relit", type=Path, default=None, help="relit pairs (default: <shards>/../relit)")
     ap.add_argument("--metrics", type=Path, default=Path("metrics/evaluate.json"))
     ap.add_argument("--reports", type=Path, default=Path("reports"))
     args = ap.parse_args(argv)
@@ -35,17 +39,30 @@ def main(argv: list[str] | None = None) -> int:
     from pilight.data.schema import DataError
     from pilight.eval.intrinsics import evaluate_intrinsics, markdown_table
 
+    relit_dir = args.relit if args.relit is not None else args.shards.parent / "relit"
     try:
         result = evaluate_intrinsics(args.shards, args.pred, "test")
+        if (relit_dir / "index.json").is_file():
+            from pilight.eval.relight import evaluate_relight, markdown_table as relight_table
+
+            split = json.loads((relit_dir / "index.json").read_text()).get("sampling", {}).get("split", "test")
+            relight = evaluate_relight(args.shards, relit_dir, split)
+        else:
+            relight = {"skipped": f"{relit_dir}/index.json not found (run the relight stage)"}
+            print(f"evaluate: relighting skipped: {relight['skipped']}")
     except DataError as exc:
         print(f"evaluate: {exc}", file=sys.stderr)
         return 1
     args.metrics.parent.mkdir(parents=True, exist_ok=True)
-    args.metrics.write_text(json.dumps({"intrinsics": result}, indent=1, sort_keys=True) + "\n")
+    args.metrics.write_text(json.dumps({"intrinsics": result, "relight": relight}, indent=1, sort_keys=True) + "\n")
     args.reports.mkdir(parents=True, exist_ok=True)
     table = markdown_table(result, "test")
     (args.reports / "intrinsics.md").write_text(table)
     print(table)
+    if "skipped" not in relight:
+        table = relight_table(relight, split)
+        (args.reports / "relight.md").write_text(table)
+        print(table)
     return 0
 
 

@@ -52,6 +52,9 @@ def project(tmp_path_factory):
     env = {**os.environ, "DVC_NO_ANALYTICS": "1", "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
     _run(["git", "init", "-q"], d, env)
     _run([sys.executable, "-m", "dvc", "init", "-q"], d, env)
+    # A user's project has commits (dvclive and `dvc exp` need a HEAD).
+    _run(["git", "add", "-A"], d, env)
+    _run(["git", "-c", "user.name=ci", "-c", "user.email=ci@localhost", "commit", "-qm", "micro profile"], d, env)
     _run([sys.executable, "-m", "dvc", "repro"], d, env)
     return d, env
 

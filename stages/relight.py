@@ -1,0 +1,126 @@
+"""DVC stage `relight`: relight the test pairs with the trained stage-2 model (DDIM or single-step,
+CFG; the relit image, D and S of a pair in one batched pass) and write them in the prediction
+shard format, keyed by the pair key `<scene>_vNN_lAA_to_lBB`.
+
+    python stages/relight.py
+
+A stage of its own so that changing relight_infer (cfg_scale, steps) reruns sampling only, never
+training. Conditions: stage-1 predictions of the input image when data/intrinsics_pred holds the
+split (the realistic setting: no ground-truth intrinsics at test time), else ground truth; the
+output index records which. The mask and the target light ball always come from the shards.
+
+Also the paper's appendix check on the first batch of pairs: the same pairs with the x channel
+of N flipped; the left/right asymmetry of D_pred should change sign (metrics/relight.json).
+
+Reads params `base`, `relight` (the model) and `relight_infer`; models/relight + data/shards
+(+ data/intrinsics_pred) -> data/relit; timings -> metrics/relight.json (never into data/relit,
+which is byte-deterministic).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pilight.params import ParamsError, load_section  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--params", default="params.yaml")
+    ap.add_argument("--shards", type=Path, default=Path("data/shards"))
+    ap.add_argument("--pred", type=Path, default=Path("data/intrinsics_pred"))
+    ap.add_argument("--model", type=Path, default=Path("models/relight"))
+    ap.add_argument("--out", type=Path, default=Path("data/relit"))
+    ap.add_argument("--metrics", type=Path, default=Path("metrics/relight.json"))
+    ap.add_argument("--no-flip-check", action="store_true", help="skip the flipped-normal check (one extra batch)")
+    args = ap.parse_args(argv)
+    try:
+        base = load_section("base", args.params)
+        p, ip = load_section("relight", args.params), load_section("relight_infer", args.params)
+    except ParamsError as exc:
+        print(f"relight: {exc}", file=sys.stderr)
+        return 2
+    import torch
+    from tqdm import tqdm
+
+    from pilight.data.predictions import write_predictions
+    from pilight.data.schema import DataError
+    from pilight.data.shards import eval_dataset, make_loader, read_index
+    from pilight.eval.relight import lr_asymmetry
+    from pilight.train.build import ModelError, check_image_size, load_model
+    from pilight.train.relight import PRED_DOMAINS, RelightTask, choose_intrinsics, load_condition_predictions
+
+    split = ip.split
+    try:
+        index = read_index(args.shards)
+        if not index["splits"].get(split, {}).get("shards"):
+            raise DataError(f"{args.shards}: the {split} split has no shards")
+        # Conditions for the model are chosen below, not by relight.conditions (a training setting).
+        task = RelightTask(p.model_copy(update={"conditions": "gt"}), args.shards, seed=base.seed)
+        check_image_size(tuple(index["sizes"]["image"][:2]), task.stack.codec.factor, f"{args.shards}/index.json")
+        load_model(task.stack, args.model)
+        has_pred = (args.pred / "index.json").is_file() and \
+            split in json.loads((args.pred / "index.json").read_text()).get("splits", {})
+        preds = load_condition_predictions(args.shards, args.pred, split, "relight") if has_pred else None
+    except (DataError, ModelError, FileNotFoundError, ValueError) as exc:
+        print(f"relight: {exc}", file=sys.stderr)
+        return 1
+    source = "pred" if preds is not None else "gt"
+    task.stack.model.eval()
+    timing = {"pairs": 0, "seconds": 0.0}
+    first: dict = {}
+
+    def relit():
+        loader = make_loader(eval_dataset(args.shards, split, "relight"), ip.batch_size)
+        gen = torch.Generator().manual_seed(base.seed)
+        with tqdm(desc=f"relight {split}", unit="pair") as bar:
+            for batch in loader:
+                B = len(batch["key"])
+                intr = choose_intrinsics(batch, torch.full((B,), preds is not None), preds)
+                t0 = time.perf_counter()
+                out = task.predict(batch, ip, gen, intr)
+                timing["seconds"] += time.perf_counter() - t0
+                timing["pairs"] += B
+                if not first:
+                    first.update(batch=batch, intr=intr, out=out)
+                for i, key in enumerate(batch["key"]):
+                    ma, mb = json.loads(batch["meta_a"][i]), json.loads(batch["meta_b"][i])
+                    meta = json.dumps({"scene": ma["scene"], "view": ma["view"], "light_a": ma["light"],
+                                       "light_b": mb["light"], "conditions": source}, sort_keys=True)
+                    yield key, {b: v[i].cpu().numpy().transpose(1, 2, 0) for b, v in out.items()}, meta
+                bar.update(B)
+
+    info = {"branches": list(task.branches), "sampling": ip.model_dump(mode="json"), "conditions": source,
+            "condition_domains": list(PRED_DOMAINS), "parts": task.describe()}
+    out_index = write_predictions(args.out, {split: relit()}, info)
+
+    flip = {"pairs": 0, "note": "needs the diffuse branch (relight.decomposition: true)"}
+    if not args.no_flip_check and first and "diffuse" in first["out"]:
+        batch, intr = first["batch"], {k: v.clone() for k, v in first["intr"].items()}
+        intr["normal"][:, 0] *= -1
+        # Same generator seed and batch as the main pass's first batch: only the normals differ.
+        flipped = task.predict(batch, ip, torch.Generator().manual_seed(base.seed), intr)["diffuse"]
+        normal = first["intr"]["normal"]  # the unflipped normals classify right-/left-facing pixels
+        a, b = lr_asymmetry(first["out"]["diffuse"], normal, batch["mask"]), lr_asymmetry(flipped, normal, batch["mask"])
+        flip = {"pairs": len(a), "asymmetry_with_n": a.tolist(), "asymmetry_with_flipped_n": b.tolist(),
+                "sign_flipped_fraction": float(((a * b) < 0).float().mean()),
+                "what": "(R - L) / (R + L) of masked D_pred over right-/left-facing pixels (unflipped n_x > 0.2 / "
+                "< -0.2); if D_pred follows N, flipping N_x flips the sign"}
+    per_pair = timing["seconds"] / max(timing["pairs"], 1)
+    args.metrics.parent.mkdir(parents=True, exist_ok=True)
+    args.metrics.write_text(json.dumps({"seconds_per_pair": per_pair, "pairs": timing["pairs"], "conditions": source,
+                                        "samples": out_index["splits"][split]["samples"], "flip_check_d_pred": flip},
+                                       indent=1, sort_keys=True) + "\n")
+    print(f"relight: {timing['pairs']} pairs, {per_pair:.3f} s/pair ({ip.mode}, {ip.steps} steps, cfg {ip.cfg_scale}, "
+          f"ensemble {ip.ensemble}, conditions {source}) -> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,233 @@
+"""Stage 2 (relighting): the task's loss and prediction, and the train / relight / evaluate scripts."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from pilight.data.predictions import write_predictions
+from pilight.data.schema import DataError
+from pilight.data.shard_params import ShardParams
+from pilight.data.shards import intrinsics_dataset, make_loader, relight_dataset, write_shards
+from pilight.params import RelightParams, SamplingParams
+from pilight.physics import physics_loss
+from pilight.train.relight import (PRED_DOMAINS, RelightTask, choose_intrinsics, encode_conditions, physics_terms,
+                                   tonemap)
+from tests.data.test_shards import write_fake_renders
+
+REPO = Path(__file__).resolve().parents[2]
+TINY = {"unet": {"block_out_channels": [32, 32], "layers_per_block": 1, "attention_head_dim": 8, "cross_attention_dim": 32},
+        "codec": {"kind": "pixel", "factor": 4}, "conditions": "gt",
+        "train": {"steps": 3, "batch_size": 2, "checkpoint_every": 3, "image_every": 3, "log_every": 1, "warmup_steps": 0}}
+
+
+def _p(**kw) -> RelightParams:
+    return RelightParams.model_validate({**TINY, **kw})
+
+
+@pytest.fixture(scope="module")
+def shards(tmp_path_factory):
+    d = tmp_path_factory.mktemp("s2")
+    renders = write_fake_renders(d / "renders", size=16, ball=8)
+    write_shards(renders, d / "shards", ShardParams(), seed=3)
+    return d / "shards"
+
+
+@pytest.fixture(scope="module")
+def preds(shards, tmp_path_factory):
+    """Fake stage-1 predictions of every train/test image: ground truth, with albedo halved."""
+    out = tmp_path_factory.mktemp("pred") / "pred"
+
+    def items(split):
+        for b in make_loader(intrinsics_dataset(shards, split, shuffle=False), 4):
+            for i, key in enumerate(b["key"]):
+                maps = {d: b[d][i].numpy().transpose(1, 2, 0) for d in PRED_DOMAINS}
+                maps["albedo"] = maps["albedo"] * 0.5
+                yield key, maps, b["meta"][i]
+    write_predictions(out, {s: items(s) for s in ("train", "test")}, {"domains": list(PRED_DOMAINS)})
+    return out
+
+
+def _batch(shards, n=2):
+    return next(iter(make_loader(relight_dataset(shards, "train", shuffle=False), n)))
+
+
+def _fixed_t(monkeypatch, value):
+    real = torch.randint
+    monkeypatch.setattr(torch, "randint", lambda lo, hi, size, generator=None: torch.full(size, value)
+                        if hi == 1000 else real(lo, hi, size, generator=generator))
+
+
+@pytest.mark.parametrize("t_fixed", [0, 999])
+def test_loss_finite_at_both_ends_with_all_lambdas(shards, t_fixed, monkeypatch):
+    task = RelightTask(_p(lambda_ds=1.0, lambda_ps=1.0, lambda_rec=1.0), shards, seed=0)
+    _fixed_t(monkeypatch, t_fixed)
+    loss, logs = task.loss(_batch(shards), torch.Generator().manual_seed(0))
+    assert torch.isfinite(loss) and loss > 0
+    assert {"l_vpred", "l_ds", "l_ps", "l_rec", "l_physics"} <= set(logs)
+    loss.backward()
+    grads = [p.grad for p in task.trainable().parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads)
+
+
+def test_one_over_t_weight_has_a_floor():
+    ones = torch.ones(2)
+    assert physics_loss(torch.tensor([0, 0]), ones, ones, ones, (1, 1, 1), t_min=1.0) == 3.0
+    assert physics_loss(torch.tensor([0, 0]), ones, ones, ones, (1, 1, 1), t_min=4.0) == 0.75
+    assert physics_loss(torch.tensor([10, 10]), ones, 0 * ones, 0 * ones, (1, 1, 1), t_min=1.0) == pytest.approx(0.1)
+
+
+def test_physics_terms_reach_the_unet_through_the_decoded_x0(shards, monkeypatch):
+    _fixed_t(monkeypatch, 3)  # small t: the 1/t weight makes the physics part visible
+    b = _batch(shards)
+    on = RelightTask(_p(), shards, seed=0)
+    off = RelightTask(_p(lambda_ds=0, lambda_ps=0, lambda_rec=0), shards, seed=0)
+    off.stack.model.load_state_dict(on.stack.model.state_dict())
+    l_on, logs_on = on.loss(b, torch.Generator().manual_seed(0))
+    l_off, logs_off = off.loss(b, torch.Generator().manual_seed(0))
+    assert logs_on["l_vpred"] == pytest.approx(logs_off["l_vpred"])
+    assert l_on > l_off and logs_on["l_physics"] > 0 and logs_off["l_physics"] == 0
+    (l_on - l_off.detach()).backward()  # the physics part alone
+    g = [p.grad.abs().sum() for p in on.trainable().parameters() if p.grad is not None]
+    assert g and sum(g) > 0
+
+
+def test_tonemapped_physics_stays_bounded_where_linear_explodes():
+    torch.manual_seed(0)
+    y = torch.randn(2, 3, 3, 8, 8) * 2  # decoded x0 at high noise: far outside [-1, 1]
+    y.requires_grad_(True)
+    kw = dict(albedo=torch.rand(2, 3, 8, 8), d_calc=torch.rand(2, 3, 8, 8), mask=torch.ones(2, 1, 8, 8),
+              image_a=torch.rand(2, 3, 8, 8), extractor=torch.nn.Identity())
+    tm = physics_terms(y, space="tonemapped", **kw)
+    lin = physics_terms(y, space="linear", **kw)
+    assert all(((v >= 0) & (v <= 4)).all() for v in tm.values())  # values in [-1, 1]: MSE <= 4
+    assert lin["ps"].max() > 100 * tm["ps"].max()
+    sum(v.sum() for v in tm.values()).backward()
+    assert torch.isfinite(y.grad).all()
+    zero = torch.full((1, 3, 4, 4), -1.0, requires_grad=True)  # black: the tone map's 1/2.2 power at 0
+    tonemap(zero.clamp(-1, 1) + 1).sum().backward()
+    assert torch.isfinite(zero.grad).all()
+
+
+def test_conditions_are_padded_to_one_width(shards):
+    task = RelightTask(_p(), shards, seed=0)
+    b = _batch(shards)
+    lc = task.stack.codec.latent_channels
+    from pilight.train.relight import condition_images
+    z = encode_conditions(task.stack.codec, condition_images(b["image_a"], b, b["ball_b"], b["mask"]), task.layout, 5)
+    assert z.shape == (2 * 3, 5 * lc, 4, 4)
+    assert (z[0, 2 * lc:] == 0).all() and (z[1, 3 * lc:] == 0).all() and (z[2, 4 * lc:] != 0).any()
+
+
+def test_decomposition_false_is_one_branch(shards):
+    with pytest.warns(UserWarning, match="L_DS and L_PS are undefined"):
+        task = RelightTask(_p(decomposition=False), shards, seed=0)
+    assert task.V == 1 and task.branches == ("relit",)
+    loss, logs = task.loss(_batch(shards), torch.Generator().manual_seed(0))
+    assert torch.isfinite(loss) and logs["l_ds"] == 0 and logs["l_ps"] == 0 and logs["ds_ps_defined"] == 0
+    loss.backward()
+    out = task.predict(_batch(shards), SamplingParams(steps=1, cfg_scale=1.5), torch.Generator().manual_seed(0))
+    assert set(out) == {"relit"} and out["relit"].shape == (2, 3, 16, 16)
+
+
+@pytest.mark.parametrize("conditions", ["pred", "mix"])
+def test_conditions_needing_predictions_fail_clearly_without_them(shards, tmp_path, conditions):
+    with pytest.raises(DataError, match=f"relight.conditions is '{conditions}'.*infer_intrinsics"):
+        RelightTask(_p(conditions=conditions), shards, seed=0, pred_dir=tmp_path / "none")
+
+
+def test_predicted_conditions_replace_ground_truth(shards, preds):
+    task = RelightTask(_p(conditions="pred"), shards, seed=0, pred_dir=preds)
+    b = _batch(shards)
+    intr = choose_intrinsics(b, torch.tensor([True, False]), task.preds)
+    torch.testing.assert_close(intr["albedo"][0], b["albedo"][0] * 0.5, atol=2e-3, rtol=1e-2)
+    assert torch.equal(intr["albedo"][1], b["albedo"][1])
+    loss, logs = task.loss(b, torch.Generator().manual_seed(0))
+    assert torch.isfinite(loss) and logs["pred_conditions"] == 1.0
+
+
+def test_bf16_autocast_loss_is_finite(shards):
+    task = RelightTask(_p(), shards, seed=0)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        loss, _ = task.loss(_batch(shards), torch.Generator().manual_seed(0))
+    assert torch.isfinite(loss)
+    loss.backward()
+
+
+def _params(tmp_path, **relight) -> Path:
+    p = yaml.safe_load((REPO / "params.yaml").read_text())
+    for k, v in {**TINY, **relight}.items():
+        p["relight"][k] = {**p["relight"].get(k, {}), **v} if isinstance(v, dict) else v
+    p["relight_infer"].update({"steps": 2, "batch_size": 4})
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(p))
+    return path
+
+
+def _run(script, *args):
+    return subprocess.run([sys.executable, str(REPO / "stages" / script), *map(str, args)],
+                          capture_output=True, text=True, cwd=REPO, timeout=600)
+
+
+@pytest.mark.slow
+def test_train_relight_evaluate_scripts(shards, preds, tmp_path):
+    params = _params(tmp_path, conditions="mix")
+    r = _run("train_relight.py", "--params", params, "--shards", shards, "--pred", preds, "--out", tmp_path / "model",
+             "--checkpoints", tmp_path / "ckpt", "--live", tmp_path / "live")
+    assert r.returncode == 0, r.stderr
+    live = json.loads((tmp_path / "live" / "metrics.json").read_text())
+    assert live["steps"] == 3 and {"l_vpred", "l_ds", "l_ps", "l_rec"} <= set(live)
+    assert (tmp_path / "live" / "plots" / "images" / "relight_grid.png").is_file()
+    assert json.loads((tmp_path / "model" / "task.json").read_text())["rec_features"] == "pooled-rgb-8x8"
+    relit = shards.parent / "relit"  # evaluate's default: beside the shards
+    outs = []
+    for run in range(2):
+        r = _run("relight.py", "--params", params, "--shards", shards, "--pred", preds, "--model", tmp_path / "model",
+                 "--out", relit, "--metrics", tmp_path / "relight.json")
+        assert r.returncode == 0, r.stderr
+        outs.append(sorted((p.name, p.read_bytes()) for p in relit.rglob("*") if p.is_file()))
+    assert outs[0] == outs[1], "relit output must be byte-deterministic"
+    index = json.loads((relit / "index.json").read_text())
+    assert index["conditions"] == "pred" and index["splits"]["test"]["samples"] == 8
+    timing = json.loads((tmp_path / "relight.json").read_text())
+    assert timing["flip_check_d_pred"]["pairs"] == 4 and "seconds_per_pair" in timing
+    r = _run("evaluate.py", "--params", params, "--shards", shards, "--pred", preds,
+             "--metrics", tmp_path / "eval.json", "--reports", tmp_path / "reports")
+    assert r.returncode == 0, r.stderr
+    res = json.loads((tmp_path / "eval.json").read_text())
+    assert "model" in res["intrinsics"]
+    rel = res["relight"]
+    assert set(rel["relight"]) == {"model", "copy_input", "analytic_ad"} and rel["relight"]["model"]["psnr"] > 0
+    assert rel["reconstruction"]["copy_input"]["psnr"] == 100.0  # identical images: the documented cap
+    assert all(v is not None and v == v for v in rel["components_psnr"].values())  # no NaN
+    assert rel["lpips"] is None and "LPIPS" in rel["lpips_note"]
+    assert rel["residual_abs_mean"]["ground_truth"] < 0.05
+    assert "| copy the input" in (tmp_path / "reports" / "relight.md").read_text()
+
+
+def test_missing_model_is_a_clear_error(shards, tmp_path):
+    r = _run("relight.py", "--params", _params(tmp_path), "--shards", shards, "--pred", tmp_path / "nopred",
+             "--model", tmp_path / "nomodel", "--out", tmp_path / "relit", "--metrics", tmp_path / "m.json")
+    assert r.returncode == 1 and "trained model not found" in r.stderr, r.stderr
+
+
+def test_train_without_predictions_is_a_clear_error(shards, tmp_path):
+    r = _run("train_relight.py", "--params", _params(tmp_path, conditions="mix"), "--shards", shards,
+             "--pred", tmp_path / "nopred", "--out", tmp_path / "model", "--checkpoints", tmp_path / "ckpt",
+             "--live", tmp_path / "live")
+    assert r.returncode == 1 and "needs stage-1 predictions" in r.stderr, r.stderr
+    assert not (tmp_path / "ckpt").exists()
+
+
+def test_empty_shard_list_is_an_error(tmp_path):
+    (tmp_path / "shards").mkdir()
+    (tmp_path / "shards" / "index.json").write_text(json.dumps({"splits": {"train": {"shards": [], "samples": 0}}, "sizes": {}}))
+    r = _run("train_relight.py", "--params", _params(tmp_path), "--shards", tmp_path / "shards",
+             "--out", tmp_path / "model", "--checkpoints", tmp_path / "ckpt", "--live", tmp_path / "live")
+    assert r.returncode == 1 and "train split has no shards" in r.stderr, r.stderr
