@@ -40,6 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     from pilight.data.shards import read_index
     from pilight.train.build import ModelError, check_image_size, save_model
     from pilight.train.intrinsics import IntrinsicsTask
+    from pilight.train.checkpoint import run_identity
     from pilight.train.loop import LoopConfig, train
 
     try:
@@ -56,7 +57,8 @@ def main(argv: list[str] | None = None) -> int:
     cfg = LoopConfig(steps=t.steps, lr=t.lr, weight_decay=t.weight_decay, warmup_steps=t.warmup_steps,
                      grad_accum=t.grad_accum, mixed_precision=t.mixed_precision, checkpoint_every=t.checkpoint_every,
                      keep_checkpoints=t.keep_checkpoints, log_every=t.log_every, image_every=t.image_every, seed=base.seed)
-    stats = train(task, cfg, args.checkpoints, args.live)
+    identity = run_identity(base.seed, "intrinsics", p.model_dump(mode="json"), [args.shards])
+    stats = train(task, cfg, args.checkpoints, args.live, identity=identity)
     save_model(task.stack, args.out, p.model_dump(mode="json"))
     print(f"train_intrinsics: {stats['steps']} steps in {stats['seconds']:.0f} s "
           f"({stats['samples_per_second']:.2f} samples/s), final loss {stats['final_loss']:.4f} -> {args.out}")

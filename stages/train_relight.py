@@ -44,6 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     from pilight.data.schema import DataError
     from pilight.data.shards import read_index
     from pilight.train.build import ModelError, check_image_size, save_model
+    from pilight.train.checkpoint import run_identity
     from pilight.train.loop import LoopConfig, train
     from pilight.train.relight import RelightTask
 
@@ -62,7 +63,9 @@ def main(argv: list[str] | None = None) -> int:
     cfg = LoopConfig(steps=t.steps, lr=t.lr, weight_decay=t.weight_decay, warmup_steps=t.warmup_steps,
                      grad_accum=t.grad_accum, mixed_precision=t.mixed_precision, checkpoint_every=t.checkpoint_every,
                      keep_checkpoints=t.keep_checkpoints, log_every=t.log_every, image_every=t.image_every, seed=base.seed)
-    stats = train(task, cfg, args.checkpoints, args.live)
+    identity = run_identity(base.seed, "relight", p.model_dump(mode="json"),
+                            [args.shards] + ([args.pred] if p.conditions != "gt" else []))
+    stats = train(task, cfg, args.checkpoints, args.live, identity=identity)
     save_model(task.stack, args.out, p.model_dump(mode="json"))
     # What each substituted part is (e.g. pooled-rgb, not DINO, for L_rec), for reports.
     (args.out / "task.json").write_text(json.dumps(task.describe(), indent=1, sort_keys=True) + "\n")

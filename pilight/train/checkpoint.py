@@ -10,13 +10,20 @@ A checkpoint is a folder ``<checkpoint_dir>/step_<NNNNNNN>/`` holding
   ``scheduler`` (LR scheduler state dict), both JSON.
 
 Folders are written under a hidden temporary name and renamed into place, so a crash mid-write
-never leaves a folder that :func:`latest_checkpoint` would pick.  A ``step_*`` folder is only
+never leaves a folder that :func:`latest_checkpoint` would pick.
+
+The folder belongs to one *run*: ``run.json`` holds its identity (the training params that shape
+the weights, and a hash of the training data).  Under ``dvc repro`` the folder is ``persist: true``,
+so it survives a params change; :func:`claim_run` drops checkpoints of any other run, otherwise
+``dvc exp run -S relight.lambda_ps=0`` would resume the previous experiment's finished weights and
+train nothing.  ``steps`` is not part of the identity: raising it continues a finished run.  A ``step_*`` folder is only
 considered if all three files exist and their safetensors headers parse (a truncated file fails
 that check), so hand-damaged folders are skipped too.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -33,6 +40,7 @@ OPTIMIZER_FILE = "optimizer.safetensors"
 STATE_FILE = "state.safetensors"
 FILES = (MODEL_FILE, OPTIMIZER_FILE, STATE_FILE)
 TMP_PREFIX = ".tmp-"
+RUN_FILE = "run.json"
 _NAME = re.compile(r"^step_(\d{7,})$")
 
 
@@ -63,9 +71,65 @@ def list_checkpoints(checkpoint_dir: Path) -> list[Path]:
     return [p for _, p in sorted(found) if is_complete(p)]
 
 
-def latest_checkpoint(checkpoint_dir: Path) -> Path | None:
-    ckpts = list_checkpoints(checkpoint_dir)
+def latest_checkpoint(checkpoint_dir: Path, max_step: int | None = None) -> Path | None:
+    ckpts = [p for p in list_checkpoints(checkpoint_dir) if max_step is None or step_of(p) <= max_step]
     return ckpts[-1] if ckpts else None
+
+
+def step_of(path: Path) -> int:
+    return int(_NAME.match(Path(path).name).group(1))
+
+
+def hash_files(paths: list[Path]) -> str:
+    """blake2b over the files' names and bytes, in sorted order (folders are walked)."""
+    h = hashlib.blake2b(digest_size=16)
+    files = sorted(f for p in map(Path, paths) for f in ([p] if p.is_file() else p.rglob("*")) if f.is_file())
+    for f in files:
+        h.update(f.name.encode() + b"\0")
+        with open(f, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+    return h.hexdigest()
+
+
+# Train keys that never change the weights of step k (steps: raising it continues the run).
+_NOT_IDENTITY = ("steps", "checkpoint_every", "keep_checkpoints", "log_every", "image_every", "num_workers")
+
+
+def run_identity(seed: int, section: str, params: dict[str, Any], data: list[Path]) -> dict[str, Any]:
+    """The identity of a training run: seed, the stage's params (less ``_NOT_IDENTITY`` under
+    ``train``) and a hash of its data files, for :func:`claim_run`."""
+    params = json.loads(json.dumps(params))
+    for key in _NOT_IDENTITY:
+        params.get("train", {}).pop(key, None)
+    return {"seed": seed, section: params, "data": hash_files(data)}
+
+
+def claim_run(checkpoint_dir: Path, identity: dict[str, Any], max_step: int) -> list[str]:
+    """Make ``checkpoint_dir`` hold only checkpoints of the run ``identity`` (JSON-able) up to ``max_step``.
+
+    Checkpoints written under another identity (or with none recorded) are deleted, as are
+    checkpoints past ``max_step`` (``steps`` was lowered: the run must end with ``max_step``'s
+    weights).  Returns one line per reason something was dropped, for the log."""
+    d = Path(checkpoint_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    run_file, found = d / RUN_FILE, list_checkpoints(d)
+    wanted = json.loads(json.dumps(identity, sort_keys=True))
+    old = json.loads(run_file.read_text(encoding="utf-8")) if run_file.is_file() else None
+    dropped: list[str] = []
+    if found and old != wanted:
+        changed = sorted(k for k in set(wanted) | set(old or {}) if (old or {}).get(k) != wanted.get(k))
+        dropped.append(f"{d}: {len(found)} checkpoint(s) of another run dropped (changed: {', '.join(changed)})")
+        for p in found:
+            shutil.rmtree(p)
+    elif late := [p for p in found if step_of(p) > max_step]:
+        dropped.append(f"{d}: checkpoint(s) past step {max_step} dropped: {', '.join(p.name for p in late)}")
+        for p in late:
+            shutil.rmtree(p)
+    tmp = d / f"{TMP_PREFIX}{RUN_FILE}-{os.getpid()}"
+    tmp.write_text(json.dumps(wanted, indent=1, sort_keys=True) + "\n", encoding="utf-8")
+    os.replace(tmp, run_file)
+    return dropped
 
 
 def remove_stale_tmp(checkpoint_dir: Path) -> None:
@@ -73,8 +137,8 @@ def remove_stale_tmp(checkpoint_dir: Path) -> None:
     d = Path(checkpoint_dir)
     if d.is_dir():
         for p in d.iterdir():
-            if p.name.startswith(TMP_PREFIX) and p.is_dir():
-                shutil.rmtree(p, ignore_errors=True)
+            if p.name.startswith(TMP_PREFIX):
+                shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
 
 
 def _fsync(path: Path) -> None:

@@ -142,7 +142,13 @@ def _open_live(live_dir: Path, resumed_from: int | None):
     return live
 
 
-def train(task: Task, cfg: LoopConfig, checkpoint_dir: Path, live_dir: Path | None, *, progress: bool = True) -> dict:
+def train(task: Task, cfg: LoopConfig, checkpoint_dir: Path, live_dir: Path | None, *, progress: bool = True,
+          identity: dict | None = None) -> dict:
+    """Train ``task`` for ``cfg.steps`` optimizer steps, resuming from ``checkpoint_dir`` when it can.
+
+    ``identity`` (JSON-able: the params that shape the weights and a data hash) ties the
+    checkpoints to one run, see :func:`pilight.train.checkpoint.claim_run`; without it any
+    checkpoint in the folder is trusted."""
     checkpoint_dir = Path(checkpoint_dir)
     cuda = torch.cuda.is_available()
     mixed = cfg.mixed_precision
@@ -175,8 +181,11 @@ def train(task: Task, cfg: LoopConfig, checkpoint_dir: Path, live_dir: Path | No
     step, epoch, consumed, resumed_from, prior_seconds, final_loss = 0, 0, 0, None, 0.0, None
     if acc.is_main_process:
         ckpt.remove_stale_tmp(checkpoint_dir)
+        if identity is not None:
+            for line in ckpt.claim_run(checkpoint_dir, identity, cfg.steps):
+                acc.print(line)
     acc.wait_for_everyone()
-    latest = ckpt.latest_checkpoint(checkpoint_dir)
+    latest = ckpt.latest_checkpoint(checkpoint_dir, max_step=cfg.steps)
     if latest is not None:
         state, rng = ckpt.load_checkpoint(latest, model=acc.unwrap_model(model), optimizer=optimizer,
                                           scheduler=scheduler)

@@ -121,6 +121,44 @@ def test_already_finished_run_does_nothing(tmp_path: Path):
     assert_bit_equal(before, weights(task))
 
 
+def test_checkpoints_of_another_run_are_dropped_not_resumed(tmp_path: Path):
+    # persist: true keeps checkpoints across `dvc exp run -S ...`: a changed run must start over.
+    fresh = ToyTask()
+    train(fresh, cfg(steps=4), tmp_path / "fresh", None, progress=False)
+    train(ToyTask(model_seed=7), cfg(steps=4), tmp_path / "c", None, progress=False, identity={"lr": 1})
+    again = train(ToyTask(), cfg(steps=4), tmp_path / "c", None, progress=False, identity={"lr": 1})
+    assert again["resumed_from"] == 4  # same run: resumed (here: already finished)
+    task = ToyTask()
+    out = train(task, cfg(steps=4), tmp_path / "c", None, progress=False, identity={"lr": 2})
+    assert out["resumed_from"] is None
+    assert_bit_equal(weights(fresh), weights(task))
+    assert json.loads((tmp_path / "c" / ckpt.RUN_FILE).read_text()) == {"lr": 2}
+
+
+def test_lowering_steps_ends_at_the_new_step(tmp_path: Path):
+    short = ToyTask()
+    train(short, cfg(steps=8), tmp_path / "short", None, progress=False)
+    train(ToyTask(), cfg(steps=12, keep_checkpoints=3), tmp_path / "c", None, progress=False, identity={})
+    task = ToyTask(model_seed=5)
+    out = train(task, cfg(steps=8), tmp_path / "c", None, progress=False, identity={})
+    assert out["resumed_from"] == 8
+    assert_bit_equal(weights(short), weights(task))
+    assert [p.name for p in ckpt.list_checkpoints(tmp_path / "c")] == ["step_0000004", "step_0000008"]
+
+
+def test_run_identity_ignores_steps_and_sees_the_data(tmp_path: Path):
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "a.tar").write_bytes(b"abc")
+    p = {"lr": 1e-4, "train": {"steps": 10, "lr": 1e-4, "log_every": 5}}
+    a = ckpt.run_identity(42, "intrinsics", p, [tmp_path / "d"])
+    b = ckpt.run_identity(42, "intrinsics", {**p, "train": {**p["train"], "steps": 99, "log_every": 1}},
+                          [tmp_path / "d"])
+    assert a == b and p["train"]["steps"] == 10  # the caller's dict is not modified
+    assert ckpt.run_identity(42, "intrinsics", {**p, "lr": 2e-4}, [tmp_path / "d"]) != a
+    (tmp_path / "d" / "a.tar").write_bytes(b"abd")
+    assert ckpt.run_identity(42, "intrinsics", p, [tmp_path / "d"]) != a
+
+
 def test_retention_keeps_newest(tmp_path: Path):
     train(ToyTask(), cfg(steps=12, checkpoint_every=2, keep_checkpoints=2), tmp_path / "c", None, progress=False)
     names = sorted(p.name for p in (tmp_path / "c").iterdir())
