@@ -326,12 +326,54 @@ class InferIntrinsicsParams(SamplingParams):
         return tuple(d for d in DOMAINS if d in v)
 
 
+class TradeParams(_Section):
+    """The speed/accuracy sweep (the `trade` stage): one factor at a time around the infer params."""
+
+    images: int = Field(4, ge=1, description="test images (stage 1) and test pairs (stage 2) per sweep point")
+    steps: tuple[int, ...] = Field((1, 2, 4, 10, 25, 50), description="DDIM steps, swept for each spacing")
+    spacings: tuple[Literal["leading", "trailing", "linspace"], ...] = ("leading", "trailing")
+    intrinsics_cfg: tuple[float, ...] = Field((1.0, 1.5, 2.0, 2.5), description="the paper's Table 5 range")
+    relight_cfg: tuple[float, ...] = (1.0, 1.5, 2.0)
+    ensemble: tuple[int, ...] = (1, 2, 4)
+    render_spp: tuple[int, ...] = Field((4, 16, 64, 256), description="render side: samples per pixel")
+    render_reference_spp: int = Field(1024, ge=1, description="the noise-free reference the spp points are compared with")
+
+    @field_validator("steps", "ensemble", "render_spp")
+    @classmethod
+    def _positive(cls, v: tuple[int, ...]) -> tuple[int, ...]:
+        if not v or min(v) < 1:
+            raise ValueError(f"must be a non-empty list of integers >= 1; got {list(v)}")
+        return v
+
+    @field_validator("intrinsics_cfg", "relight_cfg")
+    @classmethod
+    def _cfg(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if not v or min(v) < 0:
+            raise ValueError(f"must be a non-empty list of CFG scales >= 0; got {list(v)}")
+        return v
+
+
+class EvaluateParams(_Section):
+    lpips_net: Literal["alex", "vgg", "squeeze"] = "alex"
+    lpips_backbone: str | None = Field(None, description="local safetensors of the LPIPS backbone; null = LPIPS reported as null with the reason")
+    grid_images: int = Field(4, ge=1, description="test images in the input | ground truth | prediction grid")
+    relight_lights: int = Field(6, ge=1, description="analytic lights around one test image in the relit-under-several-lights grid")
+    trade: TradeParams = TradeParams()
+
+    @field_validator("lpips_backbone")
+    @classmethod
+    def _exists(cls, v: str | None) -> str | None:
+        if v is not None and not Path(v).is_file():
+            raise ValueError(f"file {v!r} does not exist")
+        return v
+
+
 from pilight.data.shard_params import ShardParams  # noqa: E402  (the shard stage's own module)
 
 SECTIONS: dict[str, type[BaseModel]] = {
     "base": BaseParams, "render": RenderParams, "shard": ShardParams,
     "intrinsics": IntrinsicsParams, "infer_intrinsics": InferIntrinsicsParams,
-    "relight": RelightParams, "relight_infer": RelightInferParams,
+    "relight": RelightParams, "relight_infer": RelightInferParams, "evaluate": EvaluateParams,
 }
 
 

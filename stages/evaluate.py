@@ -5,7 +5,9 @@
 Stage 1 (intrinsics) in the paper's Table 1 / Table 7 layout, and stage 2 (relighting: PSNR/SSIM
 in the relight and reconstruction settings beside "copy the input" and analytic A * D_calc, the
 A D + S residual, the flipped-normal check) -> metrics.json (dvc metrics, shown by `dvc exp show`),
-reports/intrinsics.md and reports/relight.md. The relit predictions default to the `relit` folder
+reports/intrinsics.md, reports/relight.md and reports/intrinsics_grid.png (input | ground truth |
+prediction for each intrinsic).  LPIPS needs local backbone weights (`evaluate.lpips_backbone`);
+without them it is null in every table, with the reason. The relit predictions default to the `relit` folder
 beside the shards (data/relit); when that folder does not exist the relighting part is skipped and
 metrics.json says so.
 """
@@ -33,20 +35,31 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         load_section("base", args.params)
+        ev = load_section("evaluate", args.params)
     except ParamsError as exc:
         print(f"evaluate: {exc}", file=sys.stderr)
         return 2
+    from PIL import Image
+
     from pilight.data.schema import DataError
     from pilight.eval.intrinsics import evaluate_intrinsics, markdown_table
+    from pilight.eval.lpips import load_lpips
 
     relit_dir = args.relit if args.relit is not None else args.shards.parent / "relit"
     try:
-        result = evaluate_intrinsics(args.shards, args.pred, "test")
+        lpips, lpips_note = load_lpips(ev.lpips_net, ev.lpips_backbone)
+    except (OSError, ValueError) as exc:
+        print(f"evaluate: evaluate.lpips_backbone: {exc}", file=sys.stderr)
+        return 2
+    try:
+        result = evaluate_intrinsics(args.shards, args.pred, "test", lpips=lpips, grid_images=ev.grid_images)
+        result["lpips_note"] = lpips_note
+        grid = result.pop("grid", None)
         if (relit_dir / "index.json").is_file():
             from pilight.eval.relight import evaluate_relight, markdown_table as relight_table
 
             split = json.loads((relit_dir / "index.json").read_text()).get("sampling", {}).get("split", "test")
-            relight = evaluate_relight(args.shards, relit_dir, split)
+            relight = evaluate_relight(args.shards, relit_dir, split, lpips=lpips, lpips_note=lpips_note)
         else:
             relight = {"skipped": f"{relit_dir}/index.json not found (run the relight stage)"}
             print(f"evaluate: relighting skipped: {relight['skipped']}")
@@ -58,6 +71,8 @@ def main(argv: list[str] | None = None) -> int:
     args.reports.mkdir(parents=True, exist_ok=True)
     table = markdown_table(result, "test")
     (args.reports / "intrinsics.md").write_text(table)
+    if grid is not None:
+        Image.fromarray(grid).save(args.reports / "intrinsics_grid.png")
     print(table)
     if "skipped" not in relight:
         table = relight_table(relight, split)

@@ -23,6 +23,8 @@ MICRO = {
 
 MICRO_UNET = {"block_out_channels": [32, 32], "cross_attention_dim": 32}
 MICRO_TRAIN = {"steps": 3, "checkpoint_every": 2, "image_every": 2, "log_every": 1, "warmup_steps": 0}
+MICRO_TRADE = {"images": 2, "steps": [1, 2], "spacings": ["leading", "trailing"], "intrinsics_cfg": [1.0, 2.0],
+               "relight_cfg": [1.5], "ensemble": [1, 2], "render_spp": [2, 4], "render_reference_spp": 8}
 
 
 def _run(args, cwd, env):
@@ -48,6 +50,8 @@ def project(tmp_path_factory):
     for stage in ("infer_intrinsics", "relight_infer"):
         if stage in params:
             params[stage]["steps"] = 2
+    params["evaluate"]["trade"].update(MICRO_TRADE)
+    params["evaluate"].update(grid_images=2, relight_lights=3)
     (d / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     env = {**os.environ, "DVC_NO_ANALYTICS": "1", "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
     _run(["git", "init", "-q"], d, env)
@@ -83,6 +87,25 @@ def test_repro_trains_infers_and_evaluates(project):
     assert "| albedo PSNR" in (d / "reports" / "intrinsics.md").read_text()
     shown = _dvc(project, "metrics", "show", "--json")  # what `dvc exp show` tabulates
     assert "albedo_psnr" in shown and "samples_per_second" in shown
+    assert (d / "reports" / "intrinsics_grid.png").is_file() and (d / "reports" / "relight.md").is_file()
+
+
+def test_repro_measures_the_speed_accuracy_trade(project):
+    d, _ = project
+    trade = json.loads((d / "metrics" / "trade.json").read_text())
+    # steps x spacing (4) + single-step + cfg 2.0 + ensemble 2; cfg 1.0 / ensemble 1 coincide with single-step
+    assert [p["label"] for p in trade["intrinsics"]["points"]][-3:] == \
+        ["1-step, cfg 1, ens 1", "1-step, cfg 2, ens 1", "1-step, cfg 1, ens 2"]
+    for stage in ("intrinsics", "relight"):
+        pts = trade[stage]["points"]
+        assert all(p["seconds_per_image"] > 0 for p in pts)
+        assert any(v for p in pts for k, v in p.items() if k.startswith("pareto_"))
+    render = json.loads((d / "metrics" / "render_trade.json").read_text())["points"]
+    assert {p["scene"] for p in render} <= {"object", "room"} and all(p["seconds"] > 0 for p in render)
+    for png in ("trade_intrinsics.png", "trade_relight.png", "relit_lights.png", "render_trade.png"):
+        assert (d / "reports" / png).stat().st_size > 1000, png
+    plots = json.loads(_dvc(project, "plots", "show", "--json", "--split"))
+    assert any("normal error vs seconds" in k for k in plots), list(plots)
 
 
 def _edit_params(project, section, key, value):
@@ -101,3 +124,19 @@ def test_nothing_reruns_and_a_param_marks_only_what_it_affects(project):
     _edit_params(project, "shard", "pairs_per_view", 1)
     changed = set(json.loads(_dvc(project, "status", "--json")))
     assert "shard" in changed and "render" not in changed, changed
+    _edit_params(project, "shard", "pairs_per_view", None)
+    assert "Data and pipelines are up to date" in _dvc(project, "status")
+
+
+def test_a_stage_2_param_reruns_only_stage_2(project):
+    """relight.lambda_ps: render, shard and stage 1 stay cached; the persisted stage-2 checkpoints of
+    the previous run are dropped, not resumed (else the new experiment would train nothing)."""
+    _edit_params(project, "relight", "lambda_ps", 0.5)
+    assert set(json.loads(_dvc(project, "status", "--json"))) == {"train_relight"}
+    out = _dvc(project, "repro")
+    for stage in ("render", "shard", "train_intrinsics", "infer_intrinsics", "render_trade"):
+        assert f"Stage '{stage}' didn't change, skipping" in out, out
+    for stage in ("train_relight", "relight", "evaluate", "trade"):
+        assert f"Running stage '{stage}'" in out, out
+    assert "checkpoint(s) of another run dropped (changed: relight)" in out, out
+    assert "Data and pipelines are up to date" in _dvc(project, "status")

@@ -1,5 +1,11 @@
 """Stage-1 evaluation on a held-out split: the model beside trivial baselines.
 
+The paper's Table 1 layout: PSNR, SSIM and LPIPS for each intrinsic and their average, on
+display values in [0, 1] (albedo as is, normal (n + 1) / 2, roughness and metallic as gray),
+background and non-Principled pixels set to 0 in both prediction and ground truth (SSIM and
+LPIPS need whole images; PSNR is over the masked pixels).  LPIPS only with local weights
+(`evaluate.lpips_backbone`), else null with the reason.
+
 Baselines (what a model must clearly beat):
 - albedo: "the input image is the albedo" (linear image clipped to [0, 1]);
 - normal: "every normal faces the camera" (0, 0, 1);
@@ -14,9 +20,36 @@ import torch
 
 from pilight.data.predictions import read_predictions
 from pilight.data.shards import intrinsics_dataset, make_loader
+import numpy as np
+from torchmetrics.functional import structural_similarity_index_measure
+
 from pilight.eval.metrics import albedo_psnr, angular_errors, masked_mae, normal_metrics
 
 SCALARS = ("roughness", "metallic")
+DOMAINS = ("albedo", "normal", "roughness", "metallic")
+
+
+def display01(domain: str, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """(B, C, H, W) map -> (B, 3, H, W) display values in [0, 1], zero off the mask."""
+    y = (x + 1) / 2 if domain == "normal" else x
+    y = y.expand(-1, 3, -1, -1) if y.shape[1] == 1 else y
+    return y.clamp(0, 1) * (mask > 0.5)
+
+
+def table1(pred: dict[str, torch.Tensor], gt: dict[str, torch.Tensor], mask: torch.Tensor, lpips=None) -> dict:
+    """{domain: {psnr, ssim, lpips}} plus "average" over the predicted domains (the paper's Table 1)."""
+    out: dict[str, dict] = {}
+    for d in DOMAINS:
+        if d not in pred:
+            continue
+        p, g = display01(d, pred[d], mask), display01(d, gt[d], mask)
+        out[d] = {"psnr": albedo_psnr(p, g, mask),
+                  "ssim": float(structural_similarity_index_measure(p, g, data_range=1.0)),
+                  "lpips": float(lpips(p, g).mean()) if lpips is not None else None}
+    if out:
+        avg = lambda k: None if any(v[k] is None for v in out.values()) else sum(v[k] for v in out.values()) / len(out)
+        out["average"] = {k: avg(k) for k in ("psnr", "ssim", "lpips")}
+    return out
 
 
 def train_means(shard_dir: Path) -> dict[str, float]:
@@ -46,8 +79,10 @@ def _collect(shard_dir: Path, split: str, preds: dict) -> dict[str, torch.Tensor
     return out
 
 
-def evaluate_intrinsics(shard_dir: Path, pred_dir: Path, split: str = "test") -> dict[str, dict]:
-    """{method: {metric: value}} for the model and each baseline (None where not applicable)."""
+def evaluate_intrinsics(shard_dir: Path, pred_dir: Path, split: str = "test", lpips=None,
+                        grid_images: int = 0) -> dict[str, dict]:
+    """{method: {metric: value}} for the model and each baseline (None where not applicable);
+    with ``grid_images`` > 0 also "grid": an input | ground truth | prediction uint8 image."""
     preds = read_predictions(pred_dir, split)
     d = _collect(Path(shard_dir), split, preds)
     mask = d["gt_mask"]
@@ -67,7 +102,30 @@ def evaluate_intrinsics(shard_dir: Path, pred_dir: Path, split: str = "test") ->
     for k in SCALARS:
         if f"pred_{k}" in d:
             model[f"{k}_mae"] = masked_mae(d[f"pred_{k}"], d[f"gt_{k}"], mask)
-    return {"model": model, "baseline": baseline, "train_means": means, "samples": int(mask.shape[0])}
+    gt = {k: d[f"gt_{k}"] for k in DOMAINS}
+    pred = {k: d[f"pred_{k}"] for k in DOMAINS if f"pred_{k}" in d}
+    base_maps = {"albedo": d["gt_image"].clamp(0, 1), "normal": facing,
+                 **{k: torch.full_like(d[f"gt_{k}"], means[k]) for k in SCALARS}}
+    out = {"model": model, "baseline": baseline, "train_means": means, "samples": int(mask.shape[0]),
+           "table1": {"model": table1(pred, gt, mask, lpips), "baseline": table1(base_maps, gt, mask, lpips)}}
+    if grid_images > 0 and pred:
+        out["grid"] = grid(d["gt_image"][:grid_images], gt, pred, mask, grid_images)
+    return out
+
+
+def grid(image: torch.Tensor, gt: dict, pred: dict, mask: torch.Tensor, n: int) -> np.ndarray:
+    """One row per image: input | (ground truth, prediction) for each predicted intrinsic."""
+    from pilight.train.intrinsics import to_uint8
+
+    rows = []
+    for i in range(min(n, image.shape[0])):
+        tiles = [to_uint8(image[i], hdr=True)]
+        for d in DOMAINS:
+            if d in pred:
+                m = mask[i:i + 1]
+                tiles += [to_uint8(display01(d, x[d][i:i + 1], m)[0], hdr=False) for x in (gt, pred)]
+        rows.append(np.concatenate(tiles, axis=1))
+    return np.concatenate(rows, axis=0)
 
 
 def markdown_table(result: dict, split: str) -> str:
@@ -80,4 +138,15 @@ def markdown_table(result: dict, split: str) -> str:
     lines = [f"Stage 1 on the `{split}` split ({result['samples']} images, masked pixels)", "",
              "| metric | model | baseline | baseline is |", "|---|---|---|---|"]
     lines += [f"| {name} | {fmt(result['model'].get(key))} | {fmt(result['baseline'].get(key))} | {what} |" for name, key, what in rows]
+    t1 = result.get("table1", {})
+    if t1.get("model"):
+        f2 = lambda v: "n/a" if v is None else f"{v:.3f}"
+        lines += ["", "The paper's Table 1 layout (display values in [0, 1], background zeroed; LPIPS: "
+                  f"{result.get('lpips_note', 'n/a')})", "",
+                  "| intrinsic | PSNR ↑ | SSIM ↑ | LPIPS ↓ | baseline PSNR | baseline SSIM | baseline LPIPS |",
+                  "|---|---|---|---|---|---|---|"]
+        for d, m in t1["model"].items():
+            b = t1["baseline"].get(d, {})
+            lines.append(f"| {d} | {f2(m['psnr'])} | {f2(m['ssim'])} | {f2(m['lpips'])} | {f2(b.get('psnr'))} | "
+                         f"{f2(b.get('ssim'))} | {f2(b.get('lpips'))} |")
     return "\n".join(lines) + "\n"

@@ -14,7 +14,8 @@ Also: the decomposition residual mean |I_relit - A D_pred - S_pred| (linear HDR,
 of the model and of the ground truth (float16 shards: ~1e-3), PSNR of D_pred and S_pred, and the
 paper's appendix check on the analytic shading: flipping the x channel of N should flip which
 side of the image is brighter.
-LPIPS: reported as null with the reason (no LPIPS weights here; nothing is downloaded).
+LPIPS (tone-mapped, full image) only with local weights (`evaluate.lpips_backbone`), else null
+with the reason; nothing is downloaded.
 """
 
 from __future__ import annotations
@@ -33,7 +34,6 @@ from pilight.physics import compose
 from pilight.train.relight import diffuse_calculated
 
 METHODS = ("model", "copy_input", "analytic_ad")
-LPIPS_NOTE = "unavailable: no local LPIPS weights configured (torchmetrics' LPIPS downloads its backbone; nothing is downloaded here)"
 
 
 def tonemap01(x: torch.Tensor) -> torch.Tensor:
@@ -67,7 +67,7 @@ def _ssim(p, g):
     return structural_similarity_index_measure(p, g, data_range=1.0, reduction="none")
 
 
-def evaluate_relight(shard_dir: Path, relit_dir: Path, split: str = "test") -> dict:
+def evaluate_relight(shard_dir: Path, relit_dir: Path, split: str = "test", lpips=None, lpips_note: str = "") -> dict:
     relit = read_predictions(Path(relit_dir), split)
     info = json.loads((Path(relit_dir) / "index.json").read_text())
     rows: dict[str, dict[str, list[torch.Tensor]]] = {s: {} for s in ("relight", "reconstruction")}
@@ -90,9 +90,11 @@ def evaluate_relight(shard_dir: Path, relit_dir: Path, split: str = "test") -> d
             p = tonemap01(img)
             for setting, sel in (("relight", ~same), ("reconstruction", same)):
                 if sel.any():
-                    r = rows[setting].setdefault(name, {"psnr": [], "ssim": []})
+                    r = rows[setting].setdefault(name, {"psnr": [], "ssim": [], "lpips": []})
                     r["psnr"].append(_psnr(p[sel], gt[sel]))
                     r["ssim"].append(_ssim(p[sel], gt[sel]))
+                    if lpips is not None:
+                        r["lpips"].append(lpips(p[sel], gt[sel]))
         if "diffuse" in pred:
             for k, g in (("diffuse", b["diffuse_b"]), ("specular", b["specular_b"])):
                 r = rows.setdefault("components", {}).setdefault(k, {"psnr": []})
@@ -109,9 +111,9 @@ def evaluate_relight(shard_dir: Path, relit_dir: Path, split: str = "test") -> d
         raise DataError(f"{shard_dir}: the {split} split has no relighting pairs")
     mean = lambda xs: float(torch.cat(xs).float().mean()) if xs else None
     out: dict = {"pairs": n, "conditions": info.get("conditions"), "sampling": info.get("sampling"),
-                 "space": "tone-mapped: (schema.to_model(x) + 1) / 2, full image", "lpips": None, "lpips_note": LPIPS_NOTE}
+                 "space": "tone-mapped: (schema.to_model(x) + 1) / 2, full image", "lpips_note": lpips_note}
     for setting in ("relight", "reconstruction"):
-        out[setting] = {name: {m: mean(v) for m, v in r.items()} | {"lpips": None, "pairs": len(torch.cat(r["psnr"]))}
+        out[setting] = {name: {m: mean(v) for m, v in r.items()} | {"pairs": len(torch.cat(r["psnr"]))}
                         for name, r in rows[setting].items()}
     out["components_psnr"] = {k: mean(r["psnr"]) for k, r in rows.get("components", {}).items()}
     out["residual_abs_mean"] = {k: mean(v) for k, v in resid.items()}
@@ -131,11 +133,12 @@ def markdown_table(result: dict, split: str) -> str:
     names = {"model": "model", "copy_input": "copy the input (baseline)", "analytic_ad": "A * D_calc, analytic (baseline)"}
     lines = [f"Stage 2 on the `{split}` split ({result['pairs']} pairs; conditions: {result['conditions']}); "
              f"PSNR/SSIM on tone-mapped [0, 1] images ({result['space']})", "",
-             "| method | relight PSNR ↑ | relight SSIM ↑ | reconstruction PSNR ↑ | reconstruction SSIM ↑ | LPIPS ↓ |",
+             "| method | relight PSNR ↑ | relight SSIM ↑ | reconstruction PSNR ↑ | reconstruction SSIM ↑ | relight LPIPS ↓ |",
              "|---|---|---|---|---|---|"]
     for key, name in names.items():
         r, c = result["relight"].get(key, {}), result["reconstruction"].get(key, {})
-        lines.append(f"| {name} | {fmt(r.get('psnr'))} | {fmt(r.get('ssim'))} | {fmt(c.get('psnr'))} | {fmt(c.get('ssim'))} | n/a |")
+        lines.append(f"| {name} | {fmt(r.get('psnr'))} | {fmt(r.get('ssim'))} | {fmt(c.get('psnr'))} | {fmt(c.get('ssim'))} | "
+                     f"{fmt(r.get('lpips'))} |")
     comp = result["components_psnr"]
     res = result["residual_abs_mean"]
     fl = result["flip_check_d_calc"]

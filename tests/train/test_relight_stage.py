@@ -206,7 +206,7 @@ def test_train_relight_evaluate_scripts(shards, preds, tmp_path):
     assert set(rel["relight"]) == {"model", "copy_input", "analytic_ad"} and rel["relight"]["model"]["psnr"] > 0
     assert rel["reconstruction"]["copy_input"]["psnr"] == 100.0  # identical images: the documented cap
     assert all(v is not None and v == v for v in rel["components_psnr"].values())  # no NaN
-    assert rel["lpips"] is None and "LPIPS" in rel["lpips_note"]
+    assert rel["relight"]["model"]["lpips"] is None and "evaluate.lpips_backbone" in rel["lpips_note"]
     assert rel["residual_abs_mean"]["ground_truth"] < 0.05
     assert "| copy the input" in (tmp_path / "reports" / "relight.md").read_text()
 
