@@ -59,7 +59,7 @@ def chunks(batch: dict, size: int):
 
 
 def relit_under_lights(task, pair: dict, intr: dict, sp, count: int, seed: int):
-    """input | relit under `count` analytic lights from left to right (row 1), their balls (row 2)."""
+    """input | relit under `count` analytic lights from left to right (row 1); below each, its ball."""
     import numpy as np
     import torch
 
@@ -81,7 +81,7 @@ def relit_under_lights(task, pair: dict, intr: dict, sp, count: int, seed: int):
     top = [u8(pair["image_a"][0])] + [u8(out["relit"][i]) for i in range(count)]
     pad = lambda b: np.pad(b, (((h - b.shape[0]) // 2, h - b.shape[0] - (h - b.shape[0]) // 2),
                                ((h - b.shape[1]) // 2, h - b.shape[1] - (h - b.shape[1]) // 2), (0, 0)))
-    bottom = [pad(u8(pair["ball_a"][0]))] + [pad(u8(balls[i])) for i in range(count)]
+    bottom = [np.zeros_like(top[0])] + [pad(u8(balls[i])) for i in range(count)]  # pairs carry only the target ball
     return np.concatenate([np.concatenate(top, 1), np.concatenate(bottom, 1)], 0)
 
 
