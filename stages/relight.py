@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     from pilight.data.shards import eval_dataset, make_loader, read_index
     from pilight.eval.relight import lr_asymmetry
     from pilight.train.build import ModelError, check_image_size, load_model
-    from pilight.train.relight import PRED_DOMAINS, RelightTask, choose_intrinsics, load_condition_predictions
+    from pilight.train.relight import PRED_DOMAINS, RelightTask, choose_intrinsics, optional_predictions
 
     split = ip.split
     try:
@@ -65,9 +65,7 @@ def main(argv: list[str] | None = None) -> int:
         task = RelightTask(p.model_copy(update={"conditions": "gt"}), args.shards, seed=base.seed)
         check_image_size(tuple(index["sizes"]["image"][:2]), task.stack.codec.factor, f"{args.shards}/index.json")
         load_model(task.stack, args.model)
-        has_pred = (args.pred / "index.json").is_file() and \
-            split in json.loads((args.pred / "index.json").read_text()).get("splits", {})
-        preds = load_condition_predictions(args.shards, args.pred, split, "relight") if has_pred else None
+        preds = optional_predictions(args.shards, args.pred, split, "relight")
     except (DataError, ModelError, FileNotFoundError, ValueError) as exc:
         print(f"relight: {exc}", file=sys.stderr)
         return 1

@@ -115,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     from pilight.eval.relight import _psnr, _ssim, tonemap01
     from pilight.train.build import ModelError, load_model
     from pilight.train.intrinsics import IntrinsicsTask
-    from pilight.train.relight import RelightTask, choose_intrinsics, load_condition_predictions
+    from pilight.train.relight import RelightTask, choose_intrinsics, optional_predictions
 
     tp, split = ev.trade, ip2.split
     try:
@@ -128,9 +128,7 @@ def main(argv: list[str] | None = None) -> int:
         pairs = first_n(make_loader(eval_dataset(args.shards, split, "relight"), 8), tp.images, cross)
         if not imgs or not pairs:
             raise DataError(f"{args.shards}: no test images or no cross-light {split} pairs to sweep")
-        has_pred = (args.pred / "index.json").is_file() and \
-            split in json.loads((args.pred / "index.json").read_text()).get("splits", {})
-        preds = load_condition_predictions(args.shards, args.pred, split, "trade") if has_pred else None
+        preds = optional_predictions(args.shards, args.pred, split, "trade")
     except (DataError, ModelError, FileNotFoundError, ValueError) as exc:
         print(f"trade: {exc}", file=sys.stderr)
         return 1

@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     from pilight.train.build import ModelError, check_image_size, save_model
     from pilight.train.intrinsics import IntrinsicsTask
     from pilight.train.checkpoint import run_identity
-    from pilight.train.loop import LoopConfig, train
+    from pilight.train.loop import loop_config, train
 
     try:
         index = read_index(args.shards)
@@ -53,10 +53,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"train_intrinsics: {exc}", file=sys.stderr)
         return 1
     torch.manual_seed(base.seed)
-    t = p.train
-    cfg = LoopConfig(steps=t.steps, lr=t.lr, weight_decay=t.weight_decay, warmup_steps=t.warmup_steps,
-                     grad_accum=t.grad_accum, mixed_precision=t.mixed_precision, checkpoint_every=t.checkpoint_every,
-                     keep_checkpoints=t.keep_checkpoints, log_every=t.log_every, image_every=t.image_every, seed=base.seed)
+    cfg = loop_config(p.train, base.seed)
     identity = run_identity(base.seed, "intrinsics", p.model_dump(mode="json"), [args.shards])
     stats = train(task, cfg, args.checkpoints, args.live, identity=identity)
     save_model(task.stack, args.out, p.model_dump(mode="json"))

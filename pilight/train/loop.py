@@ -72,6 +72,13 @@ class LoopConfig:
             raise ValueError(f"mixed_precision must be 'no', 'bf16' or 'fp16', got {self.mixed_precision!r}")
 
 
+def loop_config(t: Any, seed: int) -> LoopConfig:
+    """The loop's settings from a stage's ``train`` params section (pilight.params.TrainParams)."""
+    return LoopConfig(steps=t.steps, lr=t.lr, weight_decay=t.weight_decay, warmup_steps=t.warmup_steps,
+                      grad_accum=t.grad_accum, mixed_precision=t.mixed_precision, checkpoint_every=t.checkpoint_every,
+                      keep_checkpoints=t.keep_checkpoints, log_every=t.log_every, image_every=t.image_every, seed=seed)
+
+
 class Task(Protocol):
     samples_per_batch: int
 

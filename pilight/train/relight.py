@@ -200,6 +200,15 @@ def load_condition_predictions(shard_dir: Path, pred_dir: Path | None, split: st
     return preds
 
 
+def optional_predictions(shard_dir: Path, pred_dir: Path, split: str, why: str) -> dict | None:
+    """Stage-1 predictions of ``split`` when ``pred_dir`` holds them, else None: the caller then
+    conditions on ground truth and must say so in what it writes."""
+    index = Path(pred_dir) / "index.json"
+    if not index.is_file() or split not in json.loads(index.read_text()).get("splits", {}):
+        return None
+    return load_condition_predictions(shard_dir, pred_dir, split, why)
+
+
 def choose_intrinsics(batch: dict, use_pred: torch.Tensor, preds: dict | None) -> dict[str, torch.Tensor]:
     """Per sample: stage-1 predictions of image a where use_pred, ground truth elsewhere."""
     out = {d: batch[d].clone() for d in PRED_DOMAINS}
