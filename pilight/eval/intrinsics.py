@@ -21,7 +21,7 @@ import torch
 from pilight.data.predictions import read_predictions
 from pilight.data.shards import intrinsics_dataset, make_loader
 import numpy as np
-from torchmetrics.functional import structural_similarity_index_measure
+from torchmetrics.functional.image import structural_similarity_index_measure
 
 from pilight.eval.metrics import albedo_psnr, angular_errors, masked_mae, normal_metrics
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 
 import torch
-from torchmetrics.functional import peak_signal_noise_ratio
+from torchmetrics.functional.image import peak_signal_noise_ratio
 
 NORMAL_THRESHOLDS = (11.25, 22.5, 30.0)
 

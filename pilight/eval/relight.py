@@ -24,7 +24,7 @@ import json
 from pathlib import Path
 
 import torch
-from torchmetrics.functional import peak_signal_noise_ratio, structural_similarity_index_measure
+from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
 
 from pilight.data import schema
 from pilight.data.predictions import read_predictions
