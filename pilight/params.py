@@ -259,6 +259,12 @@ class TrainParams(_Section):
     image_every: int = Field(200, ge=1)
     num_workers: int = Field(0, ge=0)
 
+    @field_validator("mixed_precision", mode="before")
+    @classmethod
+    def _yaml_no(cls, v):
+        # `dvc exp run -S` rewrites params.yaml and drops the quotes of "no"; YAML 1.1 then reads False.
+        return "no" if v is False else v
+
 
 class ModelParams(_Section):
     """What both diffusion stages share: built by pilight.train.build.build_stack."""

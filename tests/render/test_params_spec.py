@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -112,3 +113,17 @@ def test_room_cameras_and_back_light():
                 view_dir = np.asarray(view["target"]) - np.asarray(view["location"])
                 cos = -(back[:2] @ view_dir[:2]) / np.linalg.norm(back[:2]) / np.linalg.norm(view_dir[:2])
                 assert cos >= math.cos(math.radians(30)) - 1e-6, "behind the camera within +-30 degrees"
+
+
+def test_unquoted_no_from_dvc_exp_run_means_no_mixed_precision(tmp_path):
+    """`dvc exp run -S ...` rewrites params.yaml with `mixed_precision: no`, which YAML reads as False."""
+    import yaml
+
+    from pilight.params import load_section
+
+    raw = yaml.safe_load((Path(__file__).resolve().parents[2] / "params.yaml").read_text())
+    text = yaml.safe_dump(raw).replace("mixed_precision: 'no'", "mixed_precision: no")
+    assert "mixed_precision: no\n" in text
+    (tmp_path / "params.yaml").write_text(text)
+    assert load_section("intrinsics", tmp_path / "params.yaml").train.mixed_precision == "no"
+    assert load_section("relight", tmp_path / "params.yaml").train.mixed_precision == "no"
