@@ -94,11 +94,13 @@ def _modifier(obj, kind: str) -> None:
     elif kind == "subdivision":
         obj.modifiers.new("subdivision", "SUBSURF").render_levels = 2
     elif kind == "displace":
+        # Not Blender's Displace modifier: it moves vertices along Blender's own vertex normals,
+        # which are not deterministic (see deterministic_normals), so the displaced positions
+        # changed between runs.  deterministic_normals displaces along our normals instead.
         obj.modifiers.new("subdivision", "SUBSURF").render_levels = 2
         tex = bpy.data.textures.new(f"{obj.name}_clouds", "CLOUDS")
         tex.noise_scale = 0.6
-        d = obj.modifiers.new("displace", "DISPLACE")
-        d.texture, d.strength = tex, 0.12
+        obj["pilight_displace"] = {"texture": tex.name, "strength": 0.12, "midlevel": 0.5}
     else:
         raise ValueError(f"unknown modifier {kind!r}")
 
@@ -106,31 +108,8 @@ def _modifier(obj, kind: str) -> None:
 POSITION_GRID = 2.0 ** 16  # baked vertex positions are multiples of 1 / POSITION_GRID metres
 
 
-def deterministic_normals(obj) -> None:
-    """Bake modifiers and give the mesh smooth normals computed in a fixed order.
-
-    Blender sums face normals into vertex normals in a thread-dependent order, so the last bit
-    of a smooth normal changes from run to run (measured: 1.2e-7 on a UV sphere), and with it
-    the render. A float3 `custom_normal` attribute on the point domain replaces Blender's
-    computation exactly, so the same seed gives the same bytes.
-
-    Baked modifiers (subdivision, displacement, bevel) are evaluated on several threads too, and
-    their vertex positions differed in the last bit between two renders of the default dataset
-    (a few pixels of 2 of 12 scenes, up to 4e-6).  Positions are therefore snapped to a grid of
-    2^-16 m (15 um, far below a pixel), which absorbs such differences unless one straddles a
-    grid line.
-    """
-    if obj.modifiers:
-        mesh = bpy.data.meshes.new_from_object(obj.evaluated_get(bpy.context.evaluated_depsgraph_get()))
-        obj.modifiers.clear()
-        obj.data = mesh
-        snapped = np.zeros(len(mesh.vertices) * 3, np.float32)
-        mesh.vertices.foreach_get("co", snapped)
-        mesh.vertices.foreach_set("co", np.round(snapped * POSITION_GRID) / POSITION_GRID)
-        mesh.update()
-    me = obj.data
-    if not any(poly.use_smooth for poly in me.polygons):
-        return  # flat faces use face normals, which are deterministic
+def _vertex_normals(me) -> tuple[np.ndarray, np.ndarray]:
+    """(positions, unit area-weighted vertex normals), float64, summed in a fixed order."""
     n_loops = len(me.loops)
     co = np.zeros(len(me.vertices) * 3, np.float32)
     me.vertices.foreach_get("co", co)
@@ -149,6 +128,44 @@ def deterministic_normals(obj) -> None:
     vert_n = np.zeros_like(co)
     np.add.at(vert_n, vi, face_n[face])  # area-weighted, in loop order
     vert_n /= np.maximum(np.linalg.norm(vert_n, axis=1, keepdims=True), 1e-12)
+    return co, vert_n
+
+
+def deterministic_normals(obj) -> None:
+    """Bake modifiers and give the mesh smooth normals computed in a fixed order.
+
+    Blender sums face normals into vertex normals in a thread-dependent order, so the last bit
+    of a smooth normal changes from run to run (measured: 1.2e-7 on a UV sphere), and with it
+    the render. A float3 `custom_normal` attribute on the point domain replaces Blender's
+    computation exactly, so the same seed gives the same bytes.
+
+    The same normals moved Blender's Displace modifier's vertices differently from run to run
+    (all light renders of a displaced scene changed, up to 4e-6), so displacement is done here,
+    along our normals (``_modifier`` only records it).  Baked positions are also snapped to a grid
+    of 2^-16 m (15 um, far below a pixel), so no last-bit difference of the remaining modifiers
+    (subdivision, bevel) reaches the renderer unless it straddles a grid line.
+    """
+    if obj.modifiers:
+        mesh = bpy.data.meshes.new_from_object(obj.evaluated_get(bpy.context.evaluated_depsgraph_get()))
+        obj.modifiers.clear()
+        obj.data = mesh
+        snapped = np.zeros(len(mesh.vertices) * 3, np.float32)
+        mesh.vertices.foreach_get("co", snapped)
+        mesh.vertices.foreach_set("co", np.round(snapped * POSITION_GRID) / POSITION_GRID)
+        mesh.update()
+    me = obj.data
+    displace = obj.get("pilight_displace")
+    if displace is not None:  # Displace, texture coordinates LOCAL: p += (value - midlevel) * strength * n
+        co, n = _vertex_normals(me)
+        tex = bpy.data.textures[displace["texture"]]
+        value = np.array([tex.evaluate(tuple(c))[3] for c in co])
+        co = co + ((value - displace["midlevel"]) * displace["strength"])[:, None] * n
+        me.vertices.foreach_set("co", (np.round(co * POSITION_GRID) / POSITION_GRID).astype(np.float32).ravel())
+        me.update()
+        del obj["pilight_displace"]
+    if not any(poly.use_smooth for poly in me.polygons):
+        return  # flat faces use face normals, which are deterministic
+    _, vert_n = _vertex_normals(me)
     attr = me.attributes.get("custom_normal") or me.attributes.new("custom_normal", "FLOAT_VECTOR", "POINT")
     attr.data.foreach_set("vector", vert_n.astype(np.float32).ravel())
     me.update()

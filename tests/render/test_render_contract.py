@@ -149,8 +149,24 @@ def test_baked_modifier_geometry_is_snapped_to_the_grid(bpy_render, kind):
     obj = bpy.context.active_object
     scene._modifier(obj, kind)
     scene.deterministic_normals(obj)
-    assert not obj.modifiers
+    assert not obj.modifiers and "pilight_displace" not in obj
     co = np.zeros(len(obj.data.vertices) * 3, np.float32)
     obj.data.vertices.foreach_get("co", co)
     scaled = co.astype(np.float64) * scene.POSITION_GRID
     assert np.array_equal(scaled, np.round(scaled))
+
+
+def test_displacement_moves_vertices_along_the_normal(bpy_render):
+    import bpy
+
+    from pilight.render import scene
+
+    scene.reset_blender()
+    bpy.ops.mesh.primitive_uv_sphere_add(radius=0.7)
+    obj = bpy.context.active_object
+    scene._modifier(obj, "displace")
+    scene.deterministic_normals(obj)
+    co = np.zeros(len(obj.data.vertices) * 3, np.float32)
+    obj.data.vertices.foreach_get("co", co)
+    r = np.linalg.norm(co.reshape(-1, 3), axis=1)
+    assert r.std() > 1e-3 and np.all(np.abs(r - 0.7) <= 0.5 * 0.12 + 0.01)  # |value - 0.5| * strength
