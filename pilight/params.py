@@ -251,7 +251,7 @@ class TrainParams(_Section):
     weight_decay: float = Field(1e-2, ge=0)
     warmup_steps: int = Field(20, ge=0)
     grad_accum: int = Field(1, ge=1)
-    mixed_precision: Literal["no", "bf16", "fp16"] = "no"
+    mixed_precision: Literal["fp32", "bf16", "fp16"] = Field("fp32", description="fp32 = no mixed precision (accelerate's 'no')")
     cond_dropout: float = Field(0.1, ge=0.0, le=1.0, description="drop the condition so CFG works")
     checkpoint_every: int = Field(200, ge=1)
     keep_checkpoints: int = Field(2, ge=1)
@@ -262,8 +262,10 @@ class TrainParams(_Section):
     @field_validator("mixed_precision", mode="before")
     @classmethod
     def _yaml_no(cls, v):
-        # `dvc exp run -S` rewrites params.yaml and drops the quotes of "no"; YAML 1.1 then reads False.
-        return "no" if v is False else v
+        # Accelerate's own name, "no", is accepted too.  It is not the default: `dvc exp run -S`
+        # rewrites params.yaml without its quotes, YAML 1.1 then reads False, and DVC sees every
+        # section holding it as changed.
+        return "fp32" if v in ("no", False) else v
 
 
 class ModelParams(_Section):

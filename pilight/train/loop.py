@@ -75,7 +75,8 @@ class LoopConfig:
 def loop_config(t: Any, seed: int) -> LoopConfig:
     """The loop's settings from a stage's ``train`` params section (pilight.params.TrainParams)."""
     return LoopConfig(steps=t.steps, lr=t.lr, weight_decay=t.weight_decay, warmup_steps=t.warmup_steps,
-                      grad_accum=t.grad_accum, mixed_precision=t.mixed_precision, checkpoint_every=t.checkpoint_every,
+                      grad_accum=t.grad_accum, mixed_precision="no" if t.mixed_precision == "fp32" else t.mixed_precision,
+                      checkpoint_every=t.checkpoint_every,
                       keep_checkpoints=t.keep_checkpoints, log_every=t.log_every, image_every=t.image_every, seed=seed)
 
 

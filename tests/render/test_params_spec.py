@@ -122,8 +122,8 @@ def test_unquoted_no_from_dvc_exp_run_means_no_mixed_precision(tmp_path):
     from pilight.params import load_section
 
     raw = yaml.safe_load((Path(__file__).resolve().parents[2] / "params.yaml").read_text())
-    text = yaml.safe_dump(raw).replace("mixed_precision: 'no'", "mixed_precision: no")
+    text = yaml.safe_dump(raw).replace("mixed_precision: fp32", "mixed_precision: no")
     assert "mixed_precision: no\n" in text
     (tmp_path / "params.yaml").write_text(text)
-    assert load_section("intrinsics", tmp_path / "params.yaml").train.mixed_precision == "no"
-    assert load_section("relight", tmp_path / "params.yaml").train.mixed_precision == "no"
+    assert load_section("intrinsics", tmp_path / "params.yaml").train.mixed_precision == "fp32"
+    assert load_section("relight", tmp_path / "params.yaml").train.mixed_precision == "fp32"
