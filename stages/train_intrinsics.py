@@ -34,32 +34,12 @@ def main(argv: list[str] | None = None) -> int:
     except ParamsError as exc:
         print(f"train_intrinsics: {exc}", file=sys.stderr)
         return 2
-    import torch
-
-    from pilight.data.schema import DataError
-    from pilight.data.shards import read_index
-    from pilight.train.build import ModelError, check_image_size, save_model
     from pilight.train.intrinsics import IntrinsicsTask
-    from pilight.train.checkpoint import run_identity
-    from pilight.train.loop import loop_config, train
+    from pilight.train.stage import run_training_stage
 
-    try:
-        index = read_index(args.shards)
-        if not index["splits"].get("train", {}).get("shards"):
-            raise DataError(f"{args.shards}: the train split has no shards")
-        task = IntrinsicsTask(p, args.shards, seed=base.seed)
-        check_image_size(tuple(index["sizes"]["image"][:2]), task.stack.codec.factor, f"{args.shards}/index.json")
-    except (DataError, ModelError, FileNotFoundError, ValueError) as exc:
-        print(f"train_intrinsics: {exc}", file=sys.stderr)
-        return 1
-    torch.manual_seed(base.seed)
-    cfg = loop_config(p.train, base.seed)
-    identity = run_identity(base.seed, "intrinsics", p.model_dump(mode="json"), [args.shards])
-    stats = train(task, cfg, args.checkpoints, args.live, identity=identity)
-    save_model(task.stack, args.out, p.model_dump(mode="json"))
-    print(f"train_intrinsics: {stats['steps']} steps in {stats['seconds']:.0f} s "
-          f"({stats['samples_per_second']:.2f} samples/s), final loss {stats['final_loss']:.4f} -> {args.out}")
-    return 0
+    return run_training_stage("train_intrinsics", "intrinsics", base, p,
+                              lambda: IntrinsicsTask(p, args.shards, seed=base.seed), shards=args.shards,
+                              data=[args.shards], out=args.out, checkpoints=args.checkpoints, live=args.live)
 
 
 if __name__ == "__main__":

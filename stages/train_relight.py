@@ -15,7 +15,6 @@ dvclive/relight.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -39,36 +38,14 @@ def main(argv: list[str] | None = None) -> int:
     except ParamsError as exc:
         print(f"train_relight: {exc}", file=sys.stderr)
         return 2
-    import torch
-
-    from pilight.data.schema import DataError
-    from pilight.data.shards import read_index
-    from pilight.train.build import ModelError, check_image_size, save_model
-    from pilight.train.checkpoint import run_identity
-    from pilight.train.loop import loop_config, train
     from pilight.train.relight import RelightTask
+    from pilight.train.stage import run_training_stage
 
-    try:
-        index = read_index(args.shards)
-        if not index["splits"].get("train", {}).get("shards"):
-            raise DataError(f"{args.shards}: the train split has no shards")
-        task = RelightTask(p, args.shards, seed=base.seed, pred_dir=args.pred)
-        check_image_size(tuple(index["sizes"]["image"][:2]), task.stack.codec.factor, f"{args.shards}/index.json")
-    except (DataError, ModelError, FileNotFoundError, ValueError) as exc:
-        print(f"train_relight: {exc}", file=sys.stderr)
-        return 1
-    print(f"train_relight: {task.describe()}")
-    torch.manual_seed(base.seed)
-    cfg = loop_config(p.train, base.seed)
-    identity = run_identity(base.seed, "relight", p.model_dump(mode="json"),
-                            [args.shards] + ([args.pred] if p.conditions != "gt" else []))
-    stats = train(task, cfg, args.checkpoints, args.live, identity=identity)
-    save_model(task.stack, args.out, p.model_dump(mode="json"))
-    # What each substituted part is (e.g. pooled-rgb, not DINO, for L_rec), for reports.
-    (args.out / "task.json").write_text(json.dumps(task.describe(), indent=1, sort_keys=True) + "\n")
-    print(f"train_relight: {stats['steps']} steps in {stats['seconds']:.0f} s "
-          f"({stats['samples_per_second']:.2f} samples/s), final loss {stats['final_loss']:.4f} -> {args.out}")
-    return 0
+    data = [args.shards] + ([args.pred] if p.conditions != "gt" else [])  # predictions only when they are used
+    return run_training_stage("train_relight", "relight", base, p,
+                              lambda: RelightTask(p, args.shards, seed=base.seed, pred_dir=args.pred),
+                              shards=args.shards, data=data, out=args.out, checkpoints=args.checkpoints,
+                              live=args.live)
 
 
 if __name__ == "__main__":

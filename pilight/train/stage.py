@@ -1,0 +1,48 @@
+"""What both training stage scripts (stages/train_intrinsics.py, stages/train_relight.py) do around
+:func:`pilight.train.loop.train`: check the shards, build the task, train with a run identity,
+save the model.  Each script keeps only its params section and how its task is built."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+
+def run_training_stage(name: str, section: str, base: Any, p: Any, make_task: Callable[[], Any], *,
+                       shards: Path, data: list[Path], out: Path, checkpoints: Path, live: Path) -> int:
+    """Exit code: 1 on bad data or model input (before training starts), else 0.
+
+    ``data``: the inputs whose bytes belong to the run's identity (checkpoint.run_identity).
+    A task with ``describe()`` (what each substituted part is) has it printed and written to
+    ``out/task.json`` for reports."""
+    import torch
+
+    from pilight.data.schema import DataError
+    from pilight.data.shards import read_index
+    from pilight.train.build import ModelError, check_image_size, save_model
+    from pilight.train.checkpoint import run_identity
+    from pilight.train.loop import loop_config, train
+
+    try:
+        index = read_index(shards)
+        if not index["splits"].get("train", {}).get("shards"):
+            raise DataError(f"{shards}: the train split has no shards")
+        task = make_task()
+        check_image_size(tuple(index["sizes"]["image"][:2]), task.stack.codec.factor, f"{shards}/index.json")
+    except (DataError, ModelError, FileNotFoundError, ValueError) as exc:
+        print(f"{name}: {exc}", file=sys.stderr)
+        return 1
+    described = task.describe() if hasattr(task, "describe") else None
+    if described is not None:
+        print(f"{name}: {described}")
+    torch.manual_seed(base.seed)
+    identity = run_identity(base.seed, section, p.model_dump(mode="json"), data)
+    stats = train(task, loop_config(p.train, base.seed), checkpoints, live, identity=identity)
+    save_model(task.stack, out, p.model_dump(mode="json"))
+    if described is not None:
+        (out / "task.json").write_text(json.dumps(described, indent=1, sort_keys=True) + "\n")
+    print(f"{name}: {stats['steps']} steps in {stats['seconds']:.0f} s "
+          f"({stats['samples_per_second']:.2f} samples/s), final loss {stats['final_loss']:.4f} -> {out}")
+    return 0
