@@ -111,8 +111,8 @@ def main(argv: list[str] | None = None) -> int:
     from pilight.data.schema import DataError
     from pilight.data.shards import eval_dataset, make_loader
     from pilight.eval import trade
-    from pilight.eval.metrics import albedo_psnr, angular_errors, masked_mae
-    from pilight.eval.relight import _psnr, _ssim, tonemap01
+    from pilight.eval.metrics import angular_errors, masked_mae, masked_psnr, psnr_per_image, ssim_per_image
+    from pilight.eval.relight import tonemap01
     from pilight.train.build import ModelError, load_model
     from pilight.train.intrinsics import IntrinsicsTask
     from pilight.train.relight import RelightTask, choose_intrinsics, optional_predictions
@@ -143,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def score1(pred):
         m = imgs["mask"]
-        s = {"albedo_psnr": albedo_psnr(pred["albedo"], imgs["albedo"], m) if "albedo" in pred else None,
+        s = {"albedo_psnr": masked_psnr(pred["albedo"], imgs["albedo"], m) if "albedo" in pred else None,
              "normal_mean_deg": float(angular_errors(pred["normal"], imgs["normal"], m).mean()) if "normal" in pred else None}
         s.update({f"{k}_mae": masked_mae(pred[k], imgs[k], m) if k in pred else None for k in ("roughness", "metallic")})
         return s
@@ -157,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def score2(relit):
         p, g = tonemap01(relit), tonemap01(pairs["image_b"])
-        return {"relit_psnr": float(_psnr(p, g).mean()), "relit_ssim": float(_ssim(p, g).mean())}
+        return {"relit_psnr": float(psnr_per_image(p, g).mean()), "relit_ssim": float(ssim_per_image(p, g).mean())}
 
     s1 = trade.sweep_settings(ip1, tp, tp.intrinsics_cfg)
     s2 = trade.sweep_settings(ip2, tp, tp.relight_cfg)

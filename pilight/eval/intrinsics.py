@@ -16,14 +16,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import torch
+from torchmetrics.functional.image import structural_similarity_index_measure
 
 from pilight.data.predictions import read_predictions
 from pilight.data.shards import intrinsics_dataset, make_loader
-import numpy as np
-from torchmetrics.functional.image import structural_similarity_index_measure
-
-from pilight.eval.metrics import albedo_psnr, angular_errors, masked_mae, normal_metrics
+from pilight.eval.metrics import angular_errors, masked_mae, masked_psnr, normal_metrics
 
 SCALARS = ("roughness", "metallic")
 DOMAINS = ("albedo", "normal", "roughness", "metallic")
@@ -43,7 +42,7 @@ def table1(pred: dict[str, torch.Tensor], gt: dict[str, torch.Tensor], mask: tor
         if d not in pred:
             continue
         p, g = display01(d, pred[d], mask), display01(d, gt[d], mask)
-        out[d] = {"psnr": albedo_psnr(p, g, mask),
+        out[d] = {"psnr": masked_psnr(p, g, mask),
                   "ssim": float(structural_similarity_index_measure(p, g, data_range=1.0)),
                   "lpips": float(lpips(p, g).mean()) if lpips is not None else None}
     if out:
@@ -90,13 +89,13 @@ def evaluate_intrinsics(shard_dir: Path, pred_dir: Path, split: str = "test", lp
     facing = torch.zeros_like(d["gt_normal"])
     facing[:, 2] = 1.0
     baseline = {
-        "albedo_psnr": albedo_psnr(d["gt_image"].clamp(0, 1), d["gt_albedo"], mask),
+        "albedo_psnr": masked_psnr(d["gt_image"].clamp(0, 1), d["gt_albedo"], mask),
         **{f"normal_{k}": v for k, v in normal_metrics(angular_errors(facing, d["gt_normal"], mask)).items()},
         **{f"{k}_mae": masked_mae(torch.full_like(d[f"gt_{k}"], means[k]), d[f"gt_{k}"], mask) for k in SCALARS},
     }
     model: dict[str, float | None] = {}
     if "pred_albedo" in d:
-        model["albedo_psnr"] = albedo_psnr(d["pred_albedo"], d["gt_albedo"], mask)
+        model["albedo_psnr"] = masked_psnr(d["pred_albedo"], d["gt_albedo"], mask)
     if "pred_normal" in d:
         model.update({f"normal_{k}": v for k, v in normal_metrics(angular_errors(d["pred_normal"], d["gt_normal"], mask)).items()})
     for k in SCALARS:

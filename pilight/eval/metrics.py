@@ -1,6 +1,6 @@
 """Intrinsics metrics on masked pixels, and the trivial baselines every table shows beside the model.
 
-- albedo: PSNR (torchmetrics) over the mask, data range 1 (linear albedo in [0, 1]);
+- albedo: PSNR (torchmetrics) over the mask, data range 1 (linear albedo in [0, 1]), `masked_psnr`;
 - normal: mean / median angular error in degrees and the share within 11.25, 22.5, 30 degrees
   (the paper's Table 7 layout);
 - roughness, metallic: mean absolute error over the mask.
@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 
 import torch
-from torchmetrics.functional.image import peak_signal_noise_ratio
+from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
 
 NORMAL_THRESHOLDS = (11.25, 22.5, 30.0)
 
@@ -23,7 +23,8 @@ def _masked(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return x.permute(0, 2, 3, 1)[m]
 
 
-def albedo_psnr(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> float | None:
+def masked_psnr(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> float | None:
+    """PSNR over the masked pixels of maps in [0, 1] (clamped), data range 1."""
     p, g = _masked(pred, mask), _masked(gt, mask)
     if p.numel() == 0:
         return None
@@ -47,6 +48,19 @@ def normal_metrics(errors_deg: torch.Tensor) -> dict[str, float | None]:
 def masked_mae(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> float | None:
     p, g = _masked(pred, mask), _masked(gt, mask)
     return float((p - g).abs().mean()) if p.numel() else None
+
+
+PSNR_CAP = 100.0  # dB; identical images (copy input, reconstruction setting) would give inf, not valid JSON
+
+
+def psnr_per_image(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """(B,) PSNR of whole images in [0, 1], data range 1, capped at PSNR_CAP."""
+    return peak_signal_noise_ratio(pred, gt, data_range=1.0, reduction="none", dim=(1, 2, 3)).clamp(max=PSNR_CAP)
+
+
+def ssim_per_image(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """(B,) SSIM of whole images in [0, 1] (Gaussian 11x11)."""
+    return structural_similarity_index_measure(pred, gt, data_range=1.0, reduction="none")
 
 
 def psnr_from_mse(mse: float, data_range: float = 1.0) -> float:

@@ -24,12 +24,12 @@ import json
 from pathlib import Path
 
 import torch
-from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
 
 from pilight.data import schema
 from pilight.data.predictions import read_predictions
 from pilight.data.schema import DataError
 from pilight.data.shards import eval_dataset, make_loader
+from pilight.eval.metrics import psnr_per_image, ssim_per_image
 from pilight.physics import compose
 from pilight.train.relight import diffuse_calculated
 
@@ -56,17 +56,6 @@ def lr_asymmetry(d: torch.Tensor, normal: torch.Tensor, mask: torch.Tensor, thr:
     return (r - l) / (r + l + eps)
 
 
-PSNR_CAP = 100.0  # dB; identical images (copy input, reconstruction setting) would give inf, not valid JSON
-
-
-def _psnr(p, g):
-    return peak_signal_noise_ratio(p, g, data_range=1.0, reduction="none", dim=(1, 2, 3)).clamp(max=PSNR_CAP)
-
-
-def _ssim(p, g):
-    return structural_similarity_index_measure(p, g, data_range=1.0, reduction="none")
-
-
 def evaluate_relight(shard_dir: Path, relit_dir: Path, split: str = "test", lpips=None, lpips_note: str = "") -> dict:
     relit = read_predictions(Path(relit_dir), split)
     info = json.loads((Path(relit_dir) / "index.json").read_text())
@@ -91,14 +80,14 @@ def evaluate_relight(shard_dir: Path, relit_dir: Path, split: str = "test", lpip
             for setting, sel in (("relight", ~same), ("reconstruction", same)):
                 if sel.any():
                     r = rows[setting].setdefault(name, {"psnr": [], "ssim": [], "lpips": []})
-                    r["psnr"].append(_psnr(p[sel], gt[sel]))
-                    r["ssim"].append(_ssim(p[sel], gt[sel]))
+                    r["psnr"].append(psnr_per_image(p[sel], gt[sel]))
+                    r["ssim"].append(ssim_per_image(p[sel], gt[sel]))
                     if lpips is not None:
                         r["lpips"].append(lpips(p[sel], gt[sel]))
         if "diffuse" in pred:
             for k, g in (("diffuse", b["diffuse_b"]), ("specular", b["specular_b"])):
                 r = rows.setdefault("components", {}).setdefault(k, {"psnr": []})
-                r["psnr"].append(_psnr(tonemap01(pred[k]), tonemap01(g)))
+                r["psnr"].append(psnr_per_image(tonemap01(pred[k]), tonemap01(g)))
             res = (pred["relit"] - compose(b["albedo"], pred["diffuse"], pred["specular"])).abs()
             resid["model"].append(res.flatten(1).mean(1))
         resid["ground_truth"].append((b["image_b"] - compose(b["albedo"], b["diffuse_b"], b["specular_b"])).abs().flatten(1).mean(1))

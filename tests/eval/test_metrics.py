@@ -9,23 +9,23 @@ import pytest
 import torch
 
 from pilight.eval.intrinsics import table1
-from pilight.eval.metrics import albedo_psnr, angular_errors, masked_mae, normal_metrics, psnr_from_mse
-from pilight.eval.relight import _psnr, _ssim
+from pilight.eval.metrics import (angular_errors, masked_mae, masked_psnr, normal_metrics, psnr_from_mse,
+                                  psnr_per_image, ssim_per_image)
 
 
 def test_psnr_of_known_noise():
     g = torch.full((2, 3, 16, 16), 0.5)
     mask = torch.ones(2, 1, 16, 16)
     noise = torch.where(torch.rand(g.shape, generator=torch.Generator().manual_seed(0)) > 0.5, 0.1, -0.1)
-    assert albedo_psnr(g + noise, g, mask) == pytest.approx(20.0, abs=1e-4)  # MSE 0.01 -> 20 dB
-    assert float(_psnr(g + noise, g).mean()) == pytest.approx(20.0, abs=1e-4)
+    assert masked_psnr(g + noise, g, mask) == pytest.approx(20.0, abs=1e-4)  # MSE 0.01 -> 20 dB
+    assert float(psnr_per_image(g + noise, g).mean()) == pytest.approx(20.0, abs=1e-4)
     assert psnr_from_mse(1e-4) == pytest.approx(40.0) and psnr_from_mse(0.0) == math.inf
 
 
 def test_ssim_of_identical_images_is_one_and_drops_with_noise():
     x = torch.rand(2, 3, 32, 32, generator=torch.Generator().manual_seed(1))
-    assert torch.allclose(_ssim(x, x), torch.ones(2))
-    assert float(_ssim((x + 0.2 * torch.randn(x.shape)).clamp(0, 1), x).max()) < 0.95
+    assert torch.allclose(ssim_per_image(x, x), torch.ones(2))
+    assert float(ssim_per_image((x + 0.2 * torch.randn(x.shape)).clamp(0, 1), x).max()) < 0.95
 
 
 @pytest.mark.parametrize("degrees", [0.0, 5.0, 30.0, 90.0])
@@ -49,7 +49,7 @@ def test_mae_and_empty_masks():
     mask[..., :2, :] = 1
     assert masked_mae(p, g, mask) == pytest.approx(0.25)
     empty = torch.zeros_like(mask)
-    assert masked_mae(p, g, empty) is None and albedo_psnr(p, g, empty) is None
+    assert masked_mae(p, g, empty) is None and masked_psnr(p, g, empty) is None
     assert normal_metrics(torch.zeros(0))["mean_deg"] is None
 
 
