@@ -3,21 +3,16 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
-import yaml
 
-from pilight.data.shard_params import ShardParams
-from pilight.data.shards import intrinsics_dataset, make_loader, write_shards
+from pilight.data.shards import intrinsics_dataset, make_loader
 from pilight.params import DOMAINS, IntrinsicsParams, SamplingParams
 from pilight.train.intrinsics import IntrinsicsTask, domain_targets, latent_mask, masked_latent_mse, targets_to_maps
-from tests.data.test_shards import write_fake_renders
+from tests.stage_scripts import params_file, run_stage, tiny_shards
 
-REPO = Path(__file__).resolve().parents[2]
 TINY = {"unet": {"block_out_channels": [32, 32], "layers_per_block": 1, "attention_head_dim": 8, "cross_attention_dim": 32},
         "codec": {"kind": "pixel", "factor": 4},
         "train": {"steps": 4, "batch_size": 2, "checkpoint_every": 2, "image_every": 2, "log_every": 1, "warmup_steps": 0}}
@@ -25,10 +20,7 @@ TINY = {"unet": {"block_out_channels": [32, 32], "layers_per_block": 1, "attenti
 
 @pytest.fixture(scope="module")
 def shards(tmp_path_factory):
-    d = tmp_path_factory.mktemp("s1")
-    renders = write_fake_renders(d / "renders", size=16, ball=8)
-    write_shards(renders, d / "shards", ShardParams(), seed=3)
-    return d / "shards"
+    return tiny_shards(tmp_path_factory.mktemp("s1"))
 
 
 def _batch(shards, n=2):
@@ -93,18 +85,11 @@ def test_predict_a_subset_of_domains(shards):
 
 
 def _params(tmp_path, **intrinsics) -> Path:
-    p = yaml.safe_load((REPO / "params.yaml").read_text())
-    for k, v in {**TINY, **intrinsics}.items():
-        p["intrinsics"][k] = {**p["intrinsics"].get(k, {}), **v} if isinstance(v, dict) else v
-    p["infer_intrinsics"].update({"steps": 2, "splits": ["train", "test"]})
-    path = tmp_path / "params.yaml"
-    path.write_text(yaml.safe_dump(p))
-    return path
+    return params_file(tmp_path, {"intrinsics": {**TINY, **intrinsics},
+                                  "infer_intrinsics": {"steps": 2, "splits": ["train", "test"]}})
 
 
-def _run(script, *args):
-    return subprocess.run([sys.executable, str(REPO / "stages" / script), *map(str, args)],
-                          capture_output=True, text=True, cwd=REPO, timeout=600)
+_run = run_stage
 
 
 @pytest.mark.slow

@@ -3,25 +3,20 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
-import yaml
 
 from pilight.data.predictions import write_predictions
 from pilight.data.schema import DataError
-from pilight.data.shard_params import ShardParams
-from pilight.data.shards import intrinsics_dataset, make_loader, relight_dataset, write_shards
+from pilight.data.shards import intrinsics_dataset, make_loader, relight_dataset
 from pilight.params import RelightParams, SamplingParams
 from pilight.physics import physics_loss
 from pilight.train.relight import (PRED_DOMAINS, RelightTask, choose_intrinsics, encode_conditions, physics_terms,
                                    tonemap)
-from tests.data.test_shards import write_fake_renders
+from tests.stage_scripts import params_file, run_stage, tiny_shards
 
-REPO = Path(__file__).resolve().parents[2]
 TINY = {"unet": {"block_out_channels": [32, 32], "layers_per_block": 1, "attention_head_dim": 8, "cross_attention_dim": 32},
         "codec": {"kind": "pixel", "factor": 4}, "conditions": "gt",
         "train": {"steps": 3, "batch_size": 2, "checkpoint_every": 3, "image_every": 3, "log_every": 1, "warmup_steps": 0}}
@@ -33,10 +28,7 @@ def _p(**kw) -> RelightParams:
 
 @pytest.fixture(scope="module")
 def shards(tmp_path_factory):
-    d = tmp_path_factory.mktemp("s2")
-    renders = write_fake_renders(d / "renders", size=16, ball=8)
-    write_shards(renders, d / "shards", ShardParams(), seed=3)
-    return d / "shards"
+    return tiny_shards(tmp_path_factory.mktemp("s2"))
 
 
 @pytest.fixture(scope="module")
@@ -161,18 +153,10 @@ def test_bf16_autocast_loss_is_finite(shards):
 
 
 def _params(tmp_path, **relight) -> Path:
-    p = yaml.safe_load((REPO / "params.yaml").read_text())
-    for k, v in {**TINY, **relight}.items():
-        p["relight"][k] = {**p["relight"].get(k, {}), **v} if isinstance(v, dict) else v
-    p["relight_infer"].update({"steps": 2, "batch_size": 4})
-    path = tmp_path / "params.yaml"
-    path.write_text(yaml.safe_dump(p))
-    return path
+    return params_file(tmp_path, {"relight": {**TINY, **relight}, "relight_infer": {"steps": 2, "batch_size": 4}})
 
 
-def _run(script, *args):
-    return subprocess.run([sys.executable, str(REPO / "stages" / script), *map(str, args)],
-                          capture_output=True, text=True, cwd=REPO, timeout=600)
+_run = run_stage
 
 
 @pytest.mark.slow
