@@ -250,9 +250,12 @@ class TrainParams(_Section):
     lr: float = Field(2e-4, gt=0)
     weight_decay: float = Field(1e-2, ge=0)
     warmup_steps: int = Field(20, ge=0)
+    lr_schedule: Literal["constant", "cosine"] = Field("constant", description="after warmup: constant, or a cosine decay to 0 at `steps`")
     grad_accum: int = Field(1, ge=1)
     mixed_precision: Literal["fp32", "bf16", "fp16"] = Field("fp32", description="fp32 = no mixed precision (accelerate's 'no')")
     cond_dropout: float = Field(0.1, ge=0.0, le=1.0, description="drop the condition so CFG works")
+    terminal_fraction: float = Field(0.0, ge=0.0, le=1.0, description="share of samples trained at t = T-1, "
+                                     "the timestep single-step inference uses (the rest uniform)")
     checkpoint_every: int = Field(200, ge=1)
     keep_checkpoints: int = Field(2, ge=1)
     log_every: int = Field(10, ge=1)
@@ -297,6 +300,9 @@ class RelightParams(ModelParams):
     conditions: Literal["gt", "pred", "mix"] = Field("mix", description="intrinsics given to the model while training")
     pred_probability: float = Field(0.5, ge=0.0, le=1.0, description="share of stage-1 predictions when conditions: mix")
     ds_ball: Literal["gray", "lambertian"] = Field("gray", description="ball unfolded for D_calculated (paper: gray)")
+    relit_target: Literal["image", "residual"] = Field(
+        "image", description="image = the paper's relit branch; residual = its latent minus the input's latent "
+                             "(so 'copy the input' is the zero prediction)")
 
     @model_validator(mode="after")
     def _dinov2(self) -> "RelightParams":

@@ -31,6 +31,24 @@ def make_train_scheduler(num_train_timesteps: int = 1000, beta_schedule: str = "
                          rescale_betas_zero_snr=rescale_zero_snr, timestep_spacing=timestep_spacing)
 
 
+def sample_timesteps(n: int, num_train_timesteps: int, terminal_fraction: float = 0.0,
+                     generator: torch.Generator | None = None) -> torch.Tensor:
+    """Training timesteps (n,): uniform over [0, T), then a ``terminal_fraction`` share set to T-1.
+
+    Why the extra share at T-1: single-step inference evaluates the model only there (zero SNR:
+    the input is pure noise and x0 = -v), but uniform sampling trains that regime 1/T of the
+    time, so an under-trained model copies input noise into its prediction.  Extra terminal
+    samples teach it to ignore the noise and regress x0 from the condition (the observation
+    behind single-step fine-tuning in Lotus and E2E-FT); the rest keep DDIM usable.
+    With fraction 0 no extra random numbers are drawn (the uniform stream stays as it was)."""
+    if not 0.0 <= terminal_fraction <= 1.0:
+        raise ValueError(f"terminal_fraction must lie in [0, 1], got {terminal_fraction}")
+    t = torch.randint(0, num_train_timesteps, (n,), generator=generator)
+    if terminal_fraction > 0:
+        t = torch.where(torch.rand(n, generator=generator) < terminal_fraction, num_train_timesteps - 1, t)
+    return t
+
+
 def _coefficients(alphas_cumprod: torch.Tensor, t: torch.Tensor, like: torch.Tensor):
     """sqrt(a_t), sqrt(1 - a_t) for per-sample t (B,), shaped (B, 1, ..., 1) like ``like``."""
     if t.ndim != 1 or t.shape[0] != like.shape[0]:

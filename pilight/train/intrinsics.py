@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from pilight.data import schema
 from pilight.data.shards import intrinsics_dataset, make_loader
 from pilight.diffusion.sampler import sample
-from pilight.diffusion.schedule import v_target
+from pilight.diffusion.schedule import sample_timesteps, v_target
 from pilight.params import DOMAINS, IntrinsicsParams, SamplingParams
 from pilight.train.build import Stack, build_stack
 
@@ -104,7 +104,8 @@ class IntrinsicsTask:
             z_cond = s.codec.encode(image).repeat_interleave(V, 0)
         m = latent_mask(batch["mask"].to(dev), s.codec.factor).repeat_interleave(V, 0)
         # One timestep per sample, shared by its V domains: they denoise together.
-        t = torch.randint(0, s.scheduler.config.num_train_timesteps, (B,), generator=generator).repeat_interleave(V)
+        t = sample_timesteps(B, s.scheduler.config.num_train_timesteps, self.p.train.terminal_fraction,
+                             generator).repeat_interleave(V)
         noise = torch.randn(z0.shape, generator=generator).to(dev)
         drop = (torch.rand(B, generator=generator) < self.p.train.cond_dropout).to(dev)  # CFG needs an unconditional model
         t = t.to(dev)

@@ -1,5 +1,6 @@
 """v-prediction algebra (schedule.py): exact round trips, zero-SNR terminal step."""
 
+import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -68,3 +69,18 @@ def test_rejects_scalar_t():
         assert "one timestep per sample" in str(e)
     else:
         raise AssertionError("expected ValueError")
+
+
+def test_sample_timesteps_terminal_fraction():
+    from pilight.diffusion.schedule import sample_timesteps
+
+    T = 1000  # noqa: N806 (the paper's T)
+    # Fraction 0 draws exactly the uniform stream it always drew (old runs resume bit-identically).
+    assert torch.equal(sample_timesteps(64, T, 0.0, torch.Generator().manual_seed(3)),
+                       torch.randint(0, T, (64,), generator=torch.Generator().manual_seed(3)))
+    assert (sample_timesteps(64, T, 1.0, torch.Generator().manual_seed(3)) == T - 1).all()
+    t = sample_timesteps(20000, T, 0.5, torch.Generator().manual_seed(3))
+    assert t.min() >= 0 and t.max() == T - 1
+    assert abs(float((t == T - 1).float().mean()) - 0.5) < 0.02  # 0.5 + the uniform 1/T
+    with pytest.raises(ValueError, match="terminal_fraction"):
+        sample_timesteps(4, T, 1.5)
