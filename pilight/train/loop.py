@@ -52,7 +52,8 @@ class LoopConfig:
     steps: int                 # optimizer steps (iterations)
     lr: float = 1e-4
     weight_decay: float = 1e-2
-    warmup_steps: int = 0      # linear warmup then constant (diffusers "constant_with_warmup")
+    warmup_steps: int = 0      # linear warmup, then lr_schedule
+    lr_schedule: str = "constant"  # "constant" (diffusers "constant_with_warmup") | "cosine" (to 0 at steps)
     grad_accum: int = 1
     max_grad_norm: float | None = 1.0
     mixed_precision: str = "no"   # "no" | "bf16" | "fp16"; fp16 on CPU falls back to fp32
@@ -68,6 +69,8 @@ class LoopConfig:
                 raise ValueError(f"LoopConfig.{name} must be >= 1, got {getattr(self, name)}")
         if self.steps < 0 or self.warmup_steps < 0:
             raise ValueError("LoopConfig.steps and warmup_steps must be >= 0")
+        if self.lr_schedule not in ("constant", "cosine"):
+            raise ValueError(f"lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}")
         if self.mixed_precision not in ("no", "bf16", "fp16"):
             raise ValueError(f"mixed_precision must be 'no', 'bf16' or 'fp16', got {self.mixed_precision!r}")
 
@@ -75,7 +78,8 @@ class LoopConfig:
 def loop_config(t: Any, seed: int) -> LoopConfig:
     """The loop's settings from a stage's ``train`` params section (pilight.params.TrainParams)."""
     return LoopConfig(steps=t.steps, lr=t.lr, weight_decay=t.weight_decay, warmup_steps=t.warmup_steps,
-                      grad_accum=t.grad_accum, mixed_precision="no" if t.mixed_precision == "fp32" else t.mixed_precision,
+                      lr_schedule=t.lr_schedule, grad_accum=t.grad_accum,
+                      mixed_precision="no" if t.mixed_precision == "fp32" else t.mixed_precision,
                       checkpoint_every=t.checkpoint_every,
                       keep_checkpoints=t.keep_checkpoints, log_every=t.log_every, image_every=t.image_every, seed=seed)
 
@@ -89,9 +93,15 @@ class Task(Protocol):
     def images(self, batch: Any) -> dict[str, numpy.ndarray]: ...  # must not draw from the global RNG it relies on
 
 
-def _constant_with_warmup(optimizer: torch.optim.Optimizer, warmup: int) -> torch.optim.lr_scheduler.LambdaLR:
-    # Same factor as diffusers.optimization.get_constant_schedule_with_warmup, without importing diffusers.
-    return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: s / warmup if s < warmup else 1.0)
+def _lr_schedule(optimizer: torch.optim.Optimizer, name: str, warmup: int, total: int) -> torch.optim.lr_scheduler.LambdaLR:
+    """diffusers' "constant_with_warmup" or "cosine" (warmup, then a half cosine to 0 at `total`).
+
+    Cosine is the embedded default: a run of a few hundred steps that ends at a constant lr keeps
+    the last updates' noise in its weights; decaying to 0 averages it out."""
+    from diffusers.optimization import get_scheduler
+
+    return get_scheduler("constant_with_warmup" if name == "constant" else name, optimizer,
+                         num_warmup_steps=warmup, num_training_steps=total)
 
 
 def _rng_tensors(acc: Accelerator, generator: torch.Generator) -> dict[str, torch.Tensor]:
@@ -172,7 +182,8 @@ def train(task: Task, cfg: LoopConfig, checkpoint_dir: Path, live_dir: Path | No
         raise ValueError("task.trainable() has no parameters with requires_grad=True")
     optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
     # accelerate steps a prepared scheduler num_processes times per optimizer step, hence the factor.
-    scheduler = _constant_with_warmup(optimizer, cfg.warmup_steps * acc.num_processes)
+    scheduler = _lr_schedule(optimizer, cfg.lr_schedule, cfg.warmup_steps * acc.num_processes,
+                             cfg.steps * acc.num_processes)
     deepspeed = acc.distributed_type == DistributedType.DEEPSPEED
     manual_sync = acc.num_processes > 1 and not deepspeed  # see module docstring: no DDP wrapper
     if deepspeed:

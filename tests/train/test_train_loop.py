@@ -91,23 +91,29 @@ def test_stop_and_resume_is_bit_exact(tmp_path: Path, grad_accum: int):
     assert out["final_loss"] == out_ref["final_loss"]
 
 
-def test_resume_after_crash_is_bit_exact(tmp_path: Path):
+@pytest.mark.parametrize("lr_schedule", ["constant", "cosine"])
+def test_resume_after_crash_is_bit_exact(tmp_path: Path, lr_schedule: str):
     ref = ToyTask()
-    train(ref, cfg(), tmp_path / "ref", None, progress=False)
+    train(ref, cfg(lr_schedule=lr_schedule), tmp_path / "ref", None, progress=False)
 
     crashing = ToyTask(crash_after=10)  # dies during step 11; last checkpoint is step 8
     with pytest.raises(KeyboardInterrupt):
-        train(crashing, cfg(), tmp_path / "run", tmp_path / "live", progress=False)
+        train(crashing, cfg(lr_schedule=lr_schedule), tmp_path / "run", tmp_path / "live", progress=False)
     assert ckpt.latest_checkpoint(tmp_path / "run").name == "step_0000008"
     AcceleratorState._reset_state(True)
     resumed = ToyTask()
-    out = train(resumed, cfg(), tmp_path / "run", tmp_path / "live", progress=False)
+    out = train(resumed, cfg(lr_schedule=lr_schedule), tmp_path / "run", tmp_path / "live", progress=False)
     assert out["resumed_from"] == 8
     assert_bit_equal(weights(ref), weights(resumed))
 
     # dvclive history continues at step 8 without duplicated rows from the crashed run (it logged step 10).
     rows = list(csv.DictReader(open(tmp_path / "live/plots/metrics/loss.tsv"), delimiter="\t"))
     assert [int(r["step"]) for r in rows] == [2, 4, 6, 8, 10, 12]
+    lr = [float(r["lr"]) for r in csv.DictReader(open(tmp_path / "live/plots/metrics/lr.tsv"), delimiter="\t")]
+    if lr_schedule == "constant":
+        assert lr[-3:] == [1e-2] * 3  # after the 3 warmup steps
+    else:  # the resumed run continues the same cosine: cos(pi * 8/9) -> 0.6% of lr at step 11 of 12
+        assert lr[1] > lr[2] > lr[3] > lr[4] > lr[5] and lr[5] < 0.02 * 1e-2
 
 
 def test_already_finished_run_does_nothing(tmp_path: Path):
@@ -215,6 +221,8 @@ def test_invalid_config():
         LoopConfig(steps=10, grad_accum=0)
     with pytest.raises(ValueError):
         LoopConfig(steps=10, mixed_precision="fp8")
+    with pytest.raises(ValueError, match="lr_schedule"):
+        LoopConfig(steps=10, lr_schedule="linear")
 
 
 _TWO_PROCESS_SCRIPT = """
