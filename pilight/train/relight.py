@@ -44,6 +44,12 @@ model_to_hdr, ~(1+h)^2) dwarfs L_vpred. To keep gradients finite, decoded output
 model values of at most hdr_to_model(PHYS_HDR_MAX) before the inverse tone map, and the tone map
 adds TONEMAP_EPS (its 1/2.2 power has an infinite slope at 0).
 
+`relit_target: residual` (ours, default image = the paper): the relit branch denoises
+z(I_relit) - z(I_in) instead of z(I_relit), and z(I_in) is added back to its x0 before anything is
+decoded (physics terms, inference). A relit image mostly repeats its input, so "copy the input" is
+then the zero prediction and a model trained for a few hundred CPU steps starts from it instead of
+having to learn the identity through the UNet. The D and S branches are unchanged.
+
 When decomposition is false there are no D/S branches: L_DS and L_PS are 0 (logged as such, with
 `ds_ps_defined = 0`).
 """
@@ -65,7 +71,7 @@ from pilight.data.predictions import read_predictions
 from pilight.data.schema import DataError
 from pilight.data.shards import make_loader, relight_dataset
 from pilight.diffusion.sampler import sample
-from pilight.diffusion.schedule import v_target, v_to_x0
+from pilight.diffusion.schedule import sample_timesteps, v_target, v_to_x0
 from pilight.params import RelightParams, SamplingParams
 from pilight.physics import (ball_to_envmap, compose, diffuse_shading, make_feature_extractor, masked_mse,
                              physics_loss, reconstruction_loss)
@@ -250,7 +256,8 @@ class RelightTask:
                           "undefined and logged as 0 (ds_ps_defined = 0)", stacklevel=2)
 
     def describe(self) -> dict[str, Any]:
-        return {**self.stack.describe(), "rec_features": self.extractor.name, "physics_space": self.physics_space,
+        return {**self.stack.describe(), "rec_features": self.extractor.name, "relit_target": self.p.relit_target,
+                "physics_space": self.physics_space,
                 "branches": list(self.branches), "conditions": self.p.conditions,
                 "d_calc": f"Lambertian lookup of the {self.p.ds_ball} ball x (1 - metallic)"}
 
@@ -276,12 +283,20 @@ class RelightTask:
             return batch["ball_lambertian_b"]
         return batch["ball_b"]
 
+    def _input_offset(self, image_model: torch.Tensor) -> torch.Tensor | None:
+        """(B * V, C, h, w): z(I_in) on the relit items, 0 on the D/S items; None unless relit_target is residual."""
+        if self.p.relit_target != "residual":
+            return None
+        z = self.stack.codec.encode(image_model.float())
+        per_branch = [z if b == "relit" else torch.zeros_like(z) for b in self.branches]
+        return torch.stack(per_branch, dim=1).flatten(0, 1)
+
     def loss(self, batch: dict, generator: torch.Generator) -> tuple[torch.Tensor, dict[str, float]]:
         s, V, p = self.stack, self.V, self.p
         dev = next(s.model.parameters()).device
         B = batch["image_a"].shape[0]
         # Draw order (fixed, for exact resume): t, conditions source, CFG drop, noise.
-        t = torch.randint(0, s.scheduler.config.num_train_timesteps, (B,), generator=generator)
+        t = sample_timesteps(B, s.scheduler.config.num_train_timesteps, p.train.terminal_fraction, generator)
         use_pred = torch.rand(B, generator=generator) < self.pred_share
         drop = torch.rand(B, generator=generator) < p.train.cond_dropout  # CFG needs an unconditional model
         intr = {k: v.to(dev) for k, v in choose_intrinsics(batch, use_pred, self.preds).items()}
@@ -290,6 +305,9 @@ class RelightTask:
             maps = condition_images(batch["image_a"].to(dev), intr, batch["ball_b"].to(dev), mask)
             z_cond = encode_conditions(s.codec, maps, self.layout, self.width)
             z0 = s.codec.encode(branch_targets(batch, self.branches).flatten(0, 1).to(dev).float())
+            offset = self._input_offset(maps["image"])
+            if offset is not None:
+                z0 = z0 - offset
         noise = torch.randn(z0.shape, generator=generator).to(dev)
         drop, tv = drop.to(dev), t.repeat_interleave(V).to(dev)  # one timestep per sample, shared by its branches
         x_t = s.scheduler.add_noise(z0, noise, tv)
@@ -306,6 +324,8 @@ class RelightTask:
             logs.update(l_ds=0.0, l_ps=0.0, l_rec=0.0, l_physics=0.0)
             return l_v, logs
         x0 = v_to_x0(x_t.float(), v, alphas, tv)
+        if offset is not None:
+            x0 = x0 + offset
         y = s.codec.decode(x0, checkpoint=True).float().unflatten(0, (B, V))
         d_calc = None
         if p.decomposition:
@@ -338,6 +358,9 @@ class RelightTask:
         z0 = sample(s.model, z_cond, ids, ehs, num_views=V, steps=sp.steps, cfg_scale=sp.cfg_scale,
                     timestep_spacing=sp.timestep_spacing, mode=sp.mode, ensemble=sp.ensemble, generator=generator,
                     null_hidden_states=s.null_condition(ehs), scheduler_config=s.scheduler.config)
+        offset = self._input_offset(maps["image"])
+        if offset is not None:
+            z0 = z0 + offset
         y = s.codec.decode(z0).float().unflatten(0, (B, V))
         # Clamp: model_to_hdr of the top code rounds just above the float16 maximum (inf in an EXR).
         return {b: schema.from_model("image", y[:, i]).clamp(0, schema.HDR_MAX) for i, b in enumerate(self.branches)}

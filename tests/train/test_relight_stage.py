@@ -215,3 +215,25 @@ def test_empty_shard_list_is_an_error(tmp_path):
     r = _run("train_relight.py", "--params", _params(tmp_path), "--shards", tmp_path / "shards",
              "--out", tmp_path / "model", "--checkpoints", tmp_path / "ckpt", "--live", tmp_path / "live")
     assert r.returncode == 1 and "train split has no shards" in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("target", ["image", "residual"])
+def test_residual_target_makes_the_zero_prediction_copy_the_input(shards, monkeypatch, target):
+    """relit_target residual: x0 = 0 decodes to the input image on the relit branch, and D, S are untouched."""
+    from pilight.data import schema
+
+    task = RelightTask(_p(relit_target=target, schedule={"rescale_zero_snr": True}), shards, seed=0)  # x_T is pure noise
+    monkeypatch.setattr(task.stack.model, "forward", lambda x, *a, **k: torch.zeros_like(x))  # v = 0 -> x0 = -v = 0
+    b = _batch(shards)
+    out = task.predict(b, SamplingParams(mode="single_step", cfg_scale=1.5), torch.Generator().manual_seed(0))
+    zero = schema.from_model("image", torch.zeros(1))
+    copy = schema.from_model("image", schema.to_model("image", b["image_a"])).clamp(0, schema.HDR_MAX)
+    if target == "residual":
+        torch.testing.assert_close(out["relit"], copy, rtol=1e-4, atol=1e-5)
+    else:
+        assert torch.allclose(out["relit"], zero.expand_as(out["relit"]))
+    assert torch.allclose(out["diffuse"], zero.expand_as(out["diffuse"]))
+    monkeypatch.undo()
+    loss, _ = task.loss(_batch(shards), torch.Generator().manual_seed(0))
+    loss.backward()
+    assert torch.isfinite(loss)
