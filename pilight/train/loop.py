@@ -96,8 +96,10 @@ class Task(Protocol):
 def _lr_schedule(optimizer: torch.optim.Optimizer, name: str, warmup: int, total: int) -> torch.optim.lr_scheduler.LambdaLR:
     """diffusers' "constant_with_warmup" or "cosine" (warmup, then a half cosine to 0 at `total`).
 
-    Cosine is the embedded default: a run of a few hundred steps that ends at a constant lr keeps
-    the last updates' noise in its weights; decaying to 0 averages it out."""
+    Cosine is stage 2's embedded default: a run of a few hundred steps that ends at a constant lr
+    keeps the last updates' noise in its weights; decaying to 0 averages it out.  The curve is a
+    function of `total`, so raising `train.steps` to continue a finished cosine run restarts the
+    decay from the lr that the longer curve has at the resumed step."""
     from diffusers.optimization import get_scheduler
 
     return get_scheduler("constant_with_warmup" if name == "constant" else name, optimizer,
