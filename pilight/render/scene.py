@@ -131,6 +131,12 @@ def _vertex_normals(me) -> tuple[np.ndarray, np.ndarray]:
     return co, vert_n
 
 
+def _set_snapped_positions(me, co: np.ndarray) -> None:
+    """Write vertex positions rounded to the POSITION_GRID (see deterministic_normals)."""
+    me.vertices.foreach_set("co", (np.round(co * POSITION_GRID) / POSITION_GRID).astype(np.float32).ravel())
+    me.update()
+
+
 def deterministic_normals(obj) -> None:
     """Bake modifiers and give the mesh smooth normals computed in a fixed order.
 
@@ -149,10 +155,9 @@ def deterministic_normals(obj) -> None:
         mesh = bpy.data.meshes.new_from_object(obj.evaluated_get(bpy.context.evaluated_depsgraph_get()))
         obj.modifiers.clear()
         obj.data = mesh
-        snapped = np.zeros(len(mesh.vertices) * 3, np.float32)
-        mesh.vertices.foreach_get("co", snapped)
-        mesh.vertices.foreach_set("co", np.round(snapped * POSITION_GRID) / POSITION_GRID)
-        mesh.update()
+        baked = np.zeros(len(mesh.vertices) * 3, np.float32)
+        mesh.vertices.foreach_get("co", baked)
+        _set_snapped_positions(mesh, baked)
     me = obj.data
     displace = obj.get("pilight_displace")
     if displace is not None:  # Displace, texture coordinates LOCAL: p += (value - midlevel) * strength * n
@@ -160,8 +165,7 @@ def deterministic_normals(obj) -> None:
         tex = bpy.data.textures[displace["texture"]]
         value = np.array([tex.evaluate(tuple(c))[3] for c in co])
         co = co + ((value - displace["midlevel"]) * displace["strength"])[:, None] * n
-        me.vertices.foreach_set("co", (np.round(co * POSITION_GRID) / POSITION_GRID).astype(np.float32).ravel())
-        me.update()
+        _set_snapped_positions(me, co)
         del obj["pilight_displace"]
     if not any(poly.use_smooth for poly in me.polygons):
         return  # flat faces use face normals, which are deterministic

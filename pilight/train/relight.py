@@ -283,13 +283,19 @@ class RelightTask:
             return batch["ball_lambertian_b"]
         return batch["ball_b"]
 
-    def _input_offset(self, image_model: torch.Tensor) -> torch.Tensor | None:
-        """(B * V, C, h, w): z(I_in) on the relit items, 0 on the D/S items; None unless relit_target is residual."""
+    def _input_offset(self, z_cond: torch.Tensor) -> torch.Tensor | None:
+        """(B * V, C, h, w): z(I_in) on the relit items, 0 on the D/S items; None unless relit_target is residual.
+
+        z(I_in) is read from the relit branch's condition latents (before any CFG drop), so the
+        codec encodes the input once per step, not twice."""
         if self.p.relit_target != "residual":
             return None
-        z = self.stack.codec.encode(image_model.float())
-        per_branch = [z if b == "relit" else torch.zeros_like(z) for b in self.branches]
-        return torch.stack(per_branch, dim=1).flatten(0, 1)
+        lc = self.stack.codec.latent_channels
+        i, r = self.layout["relit"].index("image"), self.branches.index("relit")
+        per_item = z_cond.unflatten(0, (-1, self.V))
+        offset = torch.zeros_like(per_item[:, :, :lc])
+        offset[:, r] = per_item[:, r, i * lc:(i + 1) * lc]
+        return offset.flatten(0, 1)
 
     def loss(self, batch: dict, generator: torch.Generator) -> tuple[torch.Tensor, dict[str, float]]:
         s, V, p = self.stack, self.V, self.p
@@ -305,7 +311,7 @@ class RelightTask:
             maps = condition_images(batch["image_a"].to(dev), intr, batch["ball_b"].to(dev), mask)
             z_cond = encode_conditions(s.codec, maps, self.layout, self.width)
             z0 = s.codec.encode(branch_targets(batch, self.branches).flatten(0, 1).to(dev).float())
-            offset = self._input_offset(maps["image"])
+            offset = self._input_offset(z_cond)
             if offset is not None:
                 z0 = z0 - offset
         noise = torch.randn(z0.shape, generator=generator).to(dev)
@@ -358,7 +364,7 @@ class RelightTask:
         z0 = sample(s.model, z_cond, ids, ehs, num_views=V, steps=sp.steps, cfg_scale=sp.cfg_scale,
                     timestep_spacing=sp.timestep_spacing, mode=sp.mode, ensemble=sp.ensemble, generator=generator,
                     null_hidden_states=s.null_condition(ehs), scheduler_config=s.scheduler.config)
-        offset = self._input_offset(maps["image"])
+        offset = self._input_offset(z_cond)
         if offset is not None:
             z0 = z0 + offset
         y = s.codec.decode(z0).float().unflatten(0, (B, V))
