@@ -160,8 +160,9 @@ class RenderParams(_Section):
     hdri: HdriParams = HdriParams()
     scene: SceneParams = SceneParams()
     lambertian_ball: bool = Field(True, description="also write the pure-diffuse ball (free: same render)")
-    ball_resolution: int = Field(64, ge=16, description="the light ball's own size; it is a smooth probe (16x32 env map)")
+    ball_resolution: int = Field(32, ge=16, description="the light ball's own size; it is a smooth probe (16x32 env map)")
     ball_samples: int = Field(32, ge=1, description="Cycles samples for the ball (adaptive threshold as the scene)")
+    ball_min_samples: int = Field(4, ge=0, description="adaptive sampling's minimum for the ball (0 = Cycles' automatic)")
     assets: tuple[str, ...] = Field((), description=".glb/.gltf/.obj/.blend files placed beside or instead of procedural shapes")
     assets_only: bool = Field(False, description="true: scenes hold only the listed assets, no procedural shapes")
 

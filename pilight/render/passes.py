@@ -51,6 +51,13 @@ def configure(view_layer, *, diffuse: bool, view_maps: bool, verify: bool = Fals
         setattr(view_layer, f"use_pass_{name}", name in wanted)
 
 
+def configure_ball(view_layer, *, lambertian: bool) -> None:
+    """The gray ball reads Combined; its Lambertian twin the diffuse light passes (not the colour)."""
+    wanted = set(BEAUTY_PASSES) | ({"diffuse_direct", "diffuse_indirect"} if lambertian else set())
+    for name in _ALL:
+        setattr(view_layer, f"use_pass_{name}", name in wanted)
+
+
 def decompose(passes: dict[str, np.ndarray], albedo: np.ndarray, where: str) -> dict[str, np.ndarray]:
     """image, diffuse D and specular S from one render's passes and the view's albedo A."""
     image = passes["Combined"]
@@ -86,13 +93,13 @@ def view_maps(passes: dict[str, np.ndarray], world_from_camera: np.ndarray) -> d
     }
 
 
-def ball_maps(passes: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+def ball_maps(passes: dict[str, np.ndarray], *, lambertian: bool = True) -> dict[str, np.ndarray]:
     """The gray ball, and its Lambertian twin from the same render.
 
     The ball is convex, so its diffuse light passes are the irradiance from the scene's lights;
     a pure diffuse ball of albedo 0.5 would have radiance 0.5 * L_d exactly: no second render.
     """
-    return {
-        "ball": passes["Combined"].astype(np.float32),
-        "ball_lambertian": (0.5 * (passes["Diffuse Direct"] + passes["Diffuse Indirect"])).astype(np.float32),
-    }
+    balls = {"ball": passes["Combined"].astype(np.float32)}
+    if lambertian:
+        balls["ball_lambertian"] = (0.5 * (passes["Diffuse Direct"] + passes["Diffuse Indirect"])).astype(np.float32)
+    return balls

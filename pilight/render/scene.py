@@ -386,6 +386,7 @@ def build(spec: dict, p: RenderParams, hdri_dir: Path) -> dict:
     ball_scene.render.film_transparent = True  # ball image is 0 outside the disk
     ball_scene.render.resolution_x = ball_scene.render.resolution_y = p.ball_resolution
     ball_scene.cycles.samples = p.ball_samples
+    ball_scene.cycles.adaptive_min_samples = p.ball_min_samples
     ball_scene.world = world
     ball_scene.collection.children.link(lights)
     ball_mesh = bpy.data.meshes.new("ball")

@@ -47,12 +47,12 @@ def bpy_render():
     pytest.importorskip("bpy")
     from pilight.render import dataset, scene
 
-    def run(spec: dict, root: Path, params: RenderParams | None = None, verify: bool = True):
+    def run(spec: dict, root: Path, params: RenderParams | None = None, verify: bool = True, lambertian: bool = True):
         p = params or tiny_params()
         handles = scene.build(spec, p, dataset.bundled_hdri_dir())
         tmp = root / ".tmp"
         tmp.mkdir(parents=True, exist_ok=True)
-        raw = dataset.render_view(handles, spec, 0, root, tmp, lambertian=True, verify=verify)
+        raw = dataset.render_view(handles, spec, 0, root, tmp, lambertian=lambertian, verify=verify)
         return raw, handles
 
     return run

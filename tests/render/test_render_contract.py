@@ -133,7 +133,19 @@ def test_lambertian_ball_in_constant_light_is_half_the_ambient(tmp_path, bpy_ren
     disk = ball[r < 0.9]
     assert abs(disk.mean() / (0.5 * a) - 1) < 0.01  # Monte Carlo noise averages out over the disk
     assert np.quantile(np.abs(disk / (0.5 * a) - 1), 0.95) < 0.1
-    assert (ball[r > 1.05] == 0).all()
+    # Cycles' pixel filter (1.5 px wide on each axis) reaches 0.75 * sqrt(2) px past the rim, no further.
+    assert (ball[r > 1 + 2 * 1.07 / w] == 0).all()
+
+
+def test_without_the_lambertian_ball_its_passes_are_not_rendered_and_the_gray_ball_is_unchanged(tmp_path, bpy_render):
+    spec = controlled_spec([sphere(principled(RED, 0.5, 0.0))], [point_light((3.0, -2.0, 2.0))])
+    bpy_render(spec, tmp_path / "with", verify=False, lambertian=True)
+    _, handles = bpy_render(spec, tmp_path / "without", verify=False, lambertian=False)
+    layer = handles["ball_scene"].view_layers[0]
+    assert not (layer.use_pass_diffuse_direct or layer.use_pass_diffuse_indirect or layer.use_pass_diffuse_color)
+    assert not layout.map_path(tmp_path / "without", "train_0000", 0, "ball_lambertian", 0).exists()
+    gray = [layout.map_path(tmp_path / d, "train_0000", 0, "ball", 0).read_bytes() for d in ("with", "without")]
+    assert gray[0] == gray[1]
 
 
 @pytest.mark.parametrize("kind", ["subdivision", "displace", "bevel"])
