@@ -257,6 +257,8 @@ class TrainParams(_Section):
     cond_dropout: float = Field(0.1, ge=0.0, le=1.0, description="drop the condition so CFG works")
     terminal_fraction: float = Field(0.0, ge=0.0, le=1.0, description="share of samples trained at t = T-1, "
                                      "the timestep single-step inference uses (the rest uniform)")
+    ema_decay: float = Field(0.0, ge=0.0, lt=1.0, description="exponential moving average of the weights, "
+                             "saved as the model (diffusers EMAModel, warmup (1+n)/(10+n)); 0 = off")
     checkpoint_every: int = Field(200, ge=1)
     keep_checkpoints: int = Field(2, ge=1)
     log_every: int = Field(10, ge=1)

@@ -7,7 +7,9 @@ A checkpoint is a folder ``<checkpoint_dir>/step_<NNNNNNN>/`` holding
   non-tensor parts (``param_groups``, non-tensor state entries) as JSON in the metadata;
 * ``state.safetensors``     -- RNG states as uint8 tensors (``rank<r>.generator``, ``rank<r>.torch_cpu``,
   ``rank<r>.cuda``); metadata ``progress`` (step, epoch, batches consumed in that epoch, ...) and
-  ``scheduler`` (LR scheduler state dict), both JSON.
+  ``scheduler`` (LR scheduler state dict), both JSON;
+* ``ema.safetensors``       -- only for runs with an EMA of the weights: its shadow tensors as
+  ``shadow.<index>`` (the order of the trainable parameters), its counters as JSON metadata.
 
 Folders are written under a hidden temporary name and renamed into place, so a crash mid-write
 never leaves a folder that :func:`latest_checkpoint` would pick.
@@ -39,6 +41,7 @@ MODEL_FILE = "model.safetensors"
 OPTIMIZER_FILE = "optimizer.safetensors"
 STATE_FILE = "state.safetensors"
 FILES = (MODEL_FILE, OPTIMIZER_FILE, STATE_FILE)
+EMA_FILE = "ema.safetensors"
 TMP_PREFIX = ".tmp-"
 RUN_FILE = "run.json"
 _NAME = re.compile(r"^step_(\d{7,})$")
@@ -183,6 +186,7 @@ def save_checkpoint(
     rng: dict[str, torch.Tensor],
     progress: dict[str, Any],
     keep: int,
+    ema: Any = None,
 ) -> Path:
     """Write ``step_<step>`` atomically, then prune to the newest ``keep`` checkpoints."""
     d = Path(checkpoint_dir)
@@ -197,7 +201,9 @@ def save_checkpoint(
     save_file(opt_tensors, str(tmp / OPTIMIZER_FILE), metadata=opt_meta)
     meta = {"progress": json.dumps({**progress, "step": step}), "scheduler": json.dumps(scheduler.state_dict())}
     save_file({k: v.to("cpu").contiguous() for k, v in rng.items()}, str(tmp / STATE_FILE), metadata=meta)
-    for name in FILES:
+    if ema is not None:
+        _save_ema(ema, tmp / EMA_FILE)
+    for name in FILES + ((EMA_FILE,) if ema is not None else ()):
         _fsync(tmp / name)
     _fsync(tmp)
 
@@ -219,8 +225,9 @@ def load_checkpoint(
     model: torch.nn.Module,
     optimizer: torch.optim.Optimizer,
     scheduler: Any,
+    ema: Any = None,
 ) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
-    """Restore model/optimizer/scheduler in place; return (progress dict, RNG tensors)."""
+    """Restore model/optimizer/scheduler (and the EMA, if given) in place; return (progress dict, RNG tensors)."""
     path = Path(path)
     # strict: a checkpoint from a different architecture must fail loudly, not half-load.
     load_model(model, str(path / MODEL_FILE), strict=True)
@@ -230,4 +237,27 @@ def load_checkpoint(
     with safe_open(str(path / STATE_FILE), framework="pt") as fh:
         meta = fh.metadata()
     scheduler.load_state_dict(json.loads(meta["scheduler"]))
+    if ema is not None:
+        _load_ema(ema, path / EMA_FILE)
     return json.loads(meta["progress"]), load_file(str(path / STATE_FILE))
+
+
+def _save_ema(ema: Any, path: Path) -> None:
+    """A diffusers EMAModel's state: tensors by index, scalar counters as JSON (no pickle)."""
+    state = dict(ema.state_dict())
+    shadow = state.pop("shadow_params")
+    save_file({f"shadow.{i:05d}": t.detach().to("cpu").contiguous() for i, t in enumerate(shadow)}, str(path),
+              metadata={"ema": json.dumps(state)})
+
+
+def _load_ema(ema: Any, path: Path) -> None:
+    if not path.is_file():
+        raise FileNotFoundError(f"{path.parent}: this run keeps an EMA of its weights but the checkpoint has no "
+                                f"{EMA_FILE}")
+    with safe_open(str(path), framework="pt") as fh:
+        state = json.loads(fh.metadata()["ema"])
+    tensors = load_file(str(path))
+    if len(tensors) != len(ema.shadow_params):
+        raise ValueError(f"{path}: {len(tensors)} EMA tensors for {len(ema.shadow_params)} trainable parameters")
+    device = ema.shadow_params[0].device
+    ema.load_state_dict({**state, "shadow_params": [tensors[f"shadow.{i:05d}"].to(device) for i in range(len(tensors))]})

@@ -62,6 +62,7 @@ class LoopConfig:
     log_every: int = 10
     image_every: int = 100     # qualitative grid to dvclive
     seed: int = 0
+    ema_decay: float = 0.0     # > 0: the trained module ends holding an EMA of its weights
 
     def __post_init__(self) -> None:
         for name in ("grad_accum", "checkpoint_every", "keep_checkpoints", "log_every", "image_every"):
@@ -69,6 +70,8 @@ class LoopConfig:
                 raise ValueError(f"LoopConfig.{name} must be >= 1, got {getattr(self, name)}")
         if self.steps < 0 or self.warmup_steps < 0:
             raise ValueError("LoopConfig.steps and warmup_steps must be >= 0")
+        if not 0.0 <= self.ema_decay < 1.0:
+            raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
         if self.lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}")
         if self.mixed_precision not in ("no", "bf16", "fp16"):
@@ -81,7 +84,8 @@ def loop_config(t: Any, seed: int) -> LoopConfig:
                       lr_schedule=t.lr_schedule, grad_accum=t.grad_accum,
                       mixed_precision="no" if t.mixed_precision == "fp32" else t.mixed_precision,
                       checkpoint_every=t.checkpoint_every,
-                      keep_checkpoints=t.keep_checkpoints, log_every=t.log_every, image_every=t.image_every, seed=seed)
+                      keep_checkpoints=t.keep_checkpoints, log_every=t.log_every, image_every=t.image_every, seed=seed,
+                      ema_decay=t.ema_decay)
 
 
 class Task(Protocol):
@@ -196,6 +200,11 @@ def train(task: Task, cfg: LoopConfig, checkpoint_dir: Path, live_dir: Path | No
     if manual_sync:  # what DDP's constructor would do: every process starts from rank 0's weights
         for t in [*module.parameters(), *module.buffers()]:
             torch.distributed.broadcast(t.data, src=0)
+    ema = None
+    if cfg.ema_decay > 0:
+        from diffusers.training_utils import EMAModel
+
+        ema = EMAModel(params, decay=cfg.ema_decay)
     # One stream per process so the shards draw different noise; the loop never uses the global RNG.
     generator = torch.Generator().manual_seed(cfg.seed + acc.process_index)
 
@@ -209,7 +218,7 @@ def train(task: Task, cfg: LoopConfig, checkpoint_dir: Path, live_dir: Path | No
     latest = ckpt.latest_checkpoint(checkpoint_dir, max_step=cfg.steps)
     if latest is not None:
         state, rng = ckpt.load_checkpoint(latest, model=acc.unwrap_model(model), optimizer=optimizer,
-                                          scheduler=scheduler)
+                                          scheduler=scheduler, ema=ema)
         _restore_rng(acc, generator, rng)
         step, epoch, consumed = state["step"], state["epoch"], state["batches_in_epoch"]
         resumed_from, prior_seconds, final_loss = step, state.get("seconds", 0.0), state.get("final_loss")
@@ -246,6 +255,8 @@ def train(task: Task, cfg: LoopConfig, checkpoint_dir: Path, live_dir: Path | No
                 continue
             step += 1
             bar.update(1)
+            if ema is not None:
+                ema.step(params)
 
             if step % cfg.log_every == 0 or step == cfg.steps:
                 now = time.perf_counter()
@@ -276,7 +287,7 @@ def train(task: Task, cfg: LoopConfig, checkpoint_dir: Path, live_dir: Path | No
                 if acc.is_main_process:
                     seconds = prior_seconds + time.perf_counter() - start
                     ckpt.save_checkpoint(checkpoint_dir, step, model=acc.unwrap_model(model), optimizer=optimizer,
-                                         scheduler=scheduler, rng=rng, keep=cfg.keep_checkpoints,
+                                         scheduler=scheduler, rng=rng, keep=cfg.keep_checkpoints, ema=ema,
                                          progress={"epoch": epoch, "batches_in_epoch": consumed,
                                                    "seconds": seconds, "final_loss": final_loss})
                 acc.wait_for_everyone()
@@ -290,6 +301,8 @@ def train(task: Task, cfg: LoopConfig, checkpoint_dir: Path, live_dir: Path | No
         if step < cfg.steps:  # epoch exhausted (not a mid-epoch stop): next epoch from its first batch
             epoch, consumed = epoch + 1, 0
     bar.close()
+    if ema is not None:  # checkpoints keep the raw weights (to continue training); the module leaves as the EMA
+        ema.copy_to(params)
 
     seconds = time.perf_counter() - start
     stats = {

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 from accelerate.state import AcceleratorState
+from safetensors.torch import load_file
 
 from pilight.train import checkpoint as ckpt
 from pilight.train.loop import LoopConfig, train
@@ -114,6 +115,46 @@ def test_resume_after_crash_is_bit_exact(tmp_path: Path, lr_schedule: str):
         assert lr[-3:] == [1e-2] * 3  # after the 3 warmup steps
     else:  # the resumed run continues the same cosine: cos(pi * 8/9) -> 0.6% of lr at step 11 of 12
         assert lr[1] > lr[2] > lr[3] > lr[4] > lr[5] and lr[5] < 0.02 * 1e-2
+
+
+def test_ema_run_resumes_bit_exact_and_ends_holding_the_ema(tmp_path: Path):
+    """The module leaves as the EMA of its weights (diffusers' recursion, warmup (1+n)/(10+n)),
+    the checkpoints keep the raw weights and the EMA, and a crashed run resumes to the same EMA."""
+    decay = 0.9
+    ref = ToyTask()
+    raw = [[p.detach().clone() for p in ref.net.parameters()]]
+    real_loss = ref.loss
+
+    def recording_loss(batch, generator):  # the weights before each step's forward = after the previous step
+        raw.append([p.detach().clone() for p in ref.net.parameters()])
+        return real_loss(batch, generator)
+
+    ref.loss = recording_loss
+    train(ref, cfg(ema_decay=decay), tmp_path / "ref", None, progress=False)
+    last_raw = load_file(str(ckpt.latest_checkpoint(tmp_path / "ref") / ckpt.MODEL_FILE))
+    raw = raw[2:] + [[last_raw[k] for k, _ in ref.net.named_parameters()]]  # after steps 1..12
+    ema = [t.clone() for t in raw[0]]  # diffusers: decay 0 at the first step
+    for n, weights_after in enumerate(raw[1:], start=2):
+        d = min((n - 1 + 1) / (10 + n - 1), decay)
+        ema = [d * e + (1 - d) * w for e, w in zip(ema, weights_after)]
+    for got, want in zip(ref.net.parameters(), ema):
+        torch.testing.assert_close(got.detach(), want, rtol=1e-6, atol=1e-7)
+    assert not torch.equal(next(ref.net.parameters()).detach(), raw[-1][0])
+
+    crashing = ToyTask(crash_after=10)
+    with pytest.raises(KeyboardInterrupt):
+        train(crashing, cfg(ema_decay=decay), tmp_path / "run", None, progress=False)
+    assert (ckpt.latest_checkpoint(tmp_path / "run") / ckpt.EMA_FILE).is_file()
+    AcceleratorState._reset_state(True)
+    resumed = ToyTask(model_seed=99)
+    assert train(resumed, cfg(ema_decay=decay), tmp_path / "run", None, progress=False)["resumed_from"] == 8
+    assert_bit_equal(weights(ref), weights(resumed))
+
+
+def test_ema_run_refuses_a_checkpoint_without_its_ema(tmp_path: Path):
+    train(ToyTask(), cfg(steps=4), tmp_path / "c", None, progress=False)  # no identity: the folder is trusted
+    with pytest.raises(FileNotFoundError, match="no ema.safetensors"):
+        train(ToyTask(), cfg(steps=8, ema_decay=0.9), tmp_path / "c", None, progress=False)
 
 
 def test_already_finished_run_does_nothing(tmp_path: Path):
@@ -223,6 +264,8 @@ def test_invalid_config():
         LoopConfig(steps=10, mixed_precision="fp8")
     with pytest.raises(ValueError, match="lr_schedule"):
         LoopConfig(steps=10, lr_schedule="linear")
+    with pytest.raises(ValueError, match="ema_decay"):
+        LoopConfig(steps=10, ema_decay=1.0)
 
 
 _TWO_PROCESS_SCRIPT = """
