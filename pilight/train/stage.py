@@ -25,6 +25,9 @@ def run_training_stage(name: str, section: str, base: Any, p: Any, make_task: Ca
     from pilight.train.checkpoint import run_identity
     from pilight.train.loop import loop_config, train
 
+    # Before the task is built: its model is initialised from the global RNG. Seeding after it
+    # (as this function once did) gave every run different initial weights.
+    torch.manual_seed(base.seed)
     try:
         index = read_index(shards)
         if not index["splits"].get("train", {}).get("shards"):
@@ -37,7 +40,6 @@ def run_training_stage(name: str, section: str, base: Any, p: Any, make_task: Ca
     described = task.describe() if hasattr(task, "describe") else None
     if described is not None:
         print(f"{name}: {described}")
-    torch.manual_seed(base.seed)
     identity = run_identity(base.seed, section, p.model_dump(mode="json"), data)
     stats = train(task, loop_config(p.train, base.seed), checkpoints, live, identity=identity)
     save_model(task.stack, out, p.model_dump(mode="json"))
