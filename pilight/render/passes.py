@@ -47,13 +47,15 @@ def configure(view_layer, *, diffuse: bool, view_maps: bool, verify: bool = Fals
         wanted |= set(VIEW_PASSES)
     if verify:
         wanted |= set(VERIFY_PASSES)
-    for name in _ALL:
-        setattr(view_layer, f"use_pass_{name}", name in wanted)
+    _enable(view_layer, wanted)
 
 
 def configure_ball(view_layer, *, lambertian: bool) -> None:
     """The gray ball reads Combined; its Lambertian twin the diffuse light passes (not the colour)."""
-    wanted = set(BEAUTY_PASSES) | ({"diffuse_direct", "diffuse_indirect"} if lambertian else set())
+    _enable(view_layer, set(BEAUTY_PASSES) | ({"diffuse_direct", "diffuse_indirect"} if lambertian else set()))
+
+
+def _enable(view_layer, wanted: set[str]) -> None:
     for name in _ALL:
         setattr(view_layer, f"use_pass_{name}", name in wanted)
 
