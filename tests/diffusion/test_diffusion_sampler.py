@@ -142,3 +142,46 @@ def test_model_keeps_installed_attention_and_set_views_is_reversible():
     model.set_views(4)
     assert model.cross_batch
     assert {p.num_views for p in unet.attn_processors.values() if hasattr(p, "num_views")} == {4}
+
+
+class _OracleV(torch.nn.Module):
+    """A 'perfect' model for one known x0: from (x_t, t) it returns the exact v that the
+    forward process would have produced, v = sqrt(a) eps - sqrt(1-a) x0, eps recovered from x_t.
+    At a zero-SNR terminal step (a = 0) x_t is the noise itself, so eps = x_t there too."""
+
+    latent_channels, num_views = LATENT, 1
+
+    def __init__(self, x0: torch.Tensor, alphas_cumprod: torch.Tensor):
+        super().__init__()
+        self.x0, self.alphas = x0, alphas_cumprod.double()
+        self.anchor = torch.nn.Parameter(torch.zeros(()))  # sample() reads the dtype from parameters
+
+    def set_views(self, views):
+        self.num_views = views
+
+    def forward(self, x_t, cond, t, ids, ehs):
+        a = self.alphas[t.long()].view(-1, 1, 1, 1)
+        x0 = self.x0.repeat(x_t.shape[0] // self.x0.shape[0], 1, 1, 1).double()
+        eps = (x_t.double() - a.sqrt() * x0) / (1 - a).sqrt()
+        return (a.sqrt() * eps - (1 - a).sqrt() * x0).float()
+
+
+@pytest.mark.parametrize("zero_snr,spacing", [(True, "trailing"), (True, "leading"), (False, "trailing")])
+@pytest.mark.parametrize("steps", [1, 4, 25])
+def test_ddim_with_the_exact_v_recovers_x0(zero_snr, spacing, steps):
+    # The loop itself (scheduler config, timestep order, v -> x0 inside DDIMScheduler) must be
+    # lossless: if an oracle's exact v did not give back x0, multi-step results would be wrong
+    # for reasons no amount of training fixes (wrong prediction type, alpha at the final step,
+    # a zero-SNR step mishandled, ensemble members misaligned).
+    config = make_train_scheduler(rescale_zero_snr=zero_snr, timestep_spacing=spacing).config
+    x0 = torch.randn(2 * DOMAINS, LATENT, 8, 8, generator=torch.Generator().manual_seed(3))
+    scheduler = make_train_scheduler(rescale_zero_snr=zero_snr)
+    oracle = _OracleV(x0, scheduler.alphas_cumprod)
+    cond, ids, ehs, _ = _inputs(2, DOMAINS)
+    out = sample(oracle, cond, ids, ehs, num_views=DOMAINS, steps=steps, timestep_spacing=spacing,
+                 generator=torch.Generator().manual_seed(0), scheduler_config=config, ensemble=2)
+    torch.testing.assert_close(out, x0, atol=1e-4, rtol=0)
+    if zero_snr:
+        one = sample(oracle, cond, ids, ehs, num_views=DOMAINS, mode="single_step", scheduler_config=config,
+                     generator=torch.Generator().manual_seed(0))
+        torch.testing.assert_close(one, x0, atol=1e-4, rtol=0)
