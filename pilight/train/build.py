@@ -21,6 +21,13 @@ from pilight.diffusion.conditioning import make_conditioning, null_like
 from pilight.diffusion.model import DomainDiffusion
 from pilight.diffusion.schedule import make_train_scheduler
 from pilight.diffusion.unet import UNetSpec, build_unet, load_pretrained_unet
+from pilight.params import SamplingParams
+
+# How the training-time image grids (dvclive) sample: one evaluation at t = T-1, the model's x0
+# estimate from pure noise. Four DDIM steps, used before, showed pure noise all through a
+# CPU-budget run (DDIM needs every timestep learned), which told the user nothing. The sampler a
+# user picks lives in the infer sections, which training must not read: changing them never retrains.
+PREVIEW_SAMPLING = SamplingParams(mode="single_step", cfg_scale=1.0)
 
 
 class ModelError(ValueError):

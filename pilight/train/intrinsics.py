@@ -20,7 +20,7 @@ from pilight.data.shards import intrinsics_dataset, make_loader
 from pilight.diffusion.sampler import sample
 from pilight.diffusion.schedule import sample_timesteps, v_target
 from pilight.params import DOMAINS, IntrinsicsParams, SamplingParams
-from pilight.train.build import Stack, build_stack
+from pilight.train.build import PREVIEW_SAMPLING, Stack, build_stack
 
 
 def linear_to_srgb(x: torch.Tensor) -> torch.Tensor:
@@ -84,7 +84,7 @@ class IntrinsicsTask:
         self.p, self.shard_dir, self.seed, self.device = p, Path(shard_dir), seed, device
         self.stack: Stack = build_stack(p, num_domains=len(DOMAINS), cond_channels=None)
         self.samples_per_batch = p.train.batch_size
-        self.preview = SamplingParams(steps=4, cfg_scale=1.0, timestep_spacing="trailing")
+        self.preview = PREVIEW_SAMPLING
 
     def trainable(self) -> torch.nn.Module:
         return self.stack.model

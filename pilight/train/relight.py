@@ -75,7 +75,7 @@ from pilight.diffusion.schedule import sample_timesteps, v_target, v_to_x0
 from pilight.params import RelightParams, SamplingParams
 from pilight.physics import (ball_to_envmap, compose, diffuse_shading, make_feature_extractor, masked_mse,
                              physics_loss, reconstruction_loss)
-from pilight.train.build import Stack, build_stack
+from pilight.train.build import PREVIEW_SAMPLING, Stack, build_stack
 from pilight.train.intrinsics import to_uint8
 
 BRANCHES = ("relit", "diffuse", "specular")  # one-hot order = domain ids 0, 1, 2
@@ -245,7 +245,7 @@ class RelightTask:
         self.extractor = make_feature_extractor(p.rec_features, p.dinov2_path)
         self.physics_space = physics_space
         self.samples_per_batch = p.train.batch_size
-        self.preview = SamplingParams(steps=4, cfg_scale=1.0, timestep_spacing="trailing")
+        self.preview = PREVIEW_SAMPLING
         self.pred_share = {"gt": 0.0, "pred": 1.0, "mix": p.pred_probability}[p.conditions]
         self.preds = None
         if self.pred_share > 0:
