@@ -114,9 +114,12 @@ class SceneParams(_Section):
     objects_room_scene: IntRange = IntRange(lo=3, hi=5)
     shapes: tuple[str, ...] = SHAPES
     textures: tuple[str, ...] = PROCEDURAL_TEXTURES
-    textured_probability: float = Field(0.6, ge=0.0, le=1.0, description="share of maps driven by a procedural texture")
+    textured_probability: float = Field(0.6, ge=0.0, le=1.0, description="share of textured materials (shared) or maps (independent)")
+    material_pattern: Literal["shared", "independent"] = Field(
+        "shared", description="shared: a textured material blends two sub-materials (colour, roughness, metal 0/1) "
+        "along one pattern, like a real asset's material mask; independent: each map its own texture and range")
     non_principled_probability: float = Field(0.15, ge=0.0, le=1.0, description="glass/emission objects, masked out")
-    metallic_probability: float = Field(0.3, ge=0.0, le=1.0, description="share of constant-metallic materials that are metal")
+    metallic_probability: float = Field(0.3, ge=0.0, le=1.0, description="share of (sub-)materials that are metal; textured metallic ranges are not (independent)")
     modifier_probability: float = Field(0.5, ge=0.0, le=1.0, description="bevel / subdivision / displacement")
 
     @field_validator("shapes")

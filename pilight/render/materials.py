@@ -33,13 +33,30 @@ def _aov_node(nt, name: str):
     return node
 
 
-def _driven(nt, spec: dict, colour: bool):
-    """A socket carrying a constant or a procedural texture mapped between two values."""
+def _texture_fac(nt, texture: str, scale: float):
+    tex = nt.nodes.new(_TEXTURE_NODES[texture])
+    tex.inputs["Scale"].default_value = scale
+    return tex.outputs["Fac"] if "Fac" in tex.outputs else tex.outputs[0]
+
+
+def _pattern_mask(nt, pattern: dict):
+    """A shared pattern's mask in [0, 1]: the texture's Fac ramped across 0.5 +- edge."""
+    mask = nt.nodes.new("ShaderNodeMapRange")
+    mask.clamp = True
+    nt.links.new(_texture_fac(nt, pattern["texture"], pattern["scale"]), mask.inputs["Value"])
+    mask.inputs["From Min"].default_value = 0.5 - pattern["edge"]
+    mask.inputs["From Max"].default_value = 0.5 + pattern["edge"]
+    return mask.outputs["Result"]
+
+
+def _driven(nt, spec: dict, colour: bool, mask=None):
+    """A socket carrying a constant, or a procedural factor mapped between two values: the
+    channel's own texture ("texture" in spec) or the material's shared ``mask``."""
     if "const" in spec:
         return None, spec["const"]
-    tex = nt.nodes.new(_TEXTURE_NODES[spec["texture"]])
-    tex.inputs["Scale"].default_value = spec["scale"]
-    fac = tex.outputs["Fac"] if "Fac" in tex.outputs else tex.outputs[0]
+    fac = _texture_fac(nt, spec["texture"], spec["scale"]) if "texture" in spec else mask
+    if fac is None:
+        raise ValueError(f"a channel with values {spec['values']} needs its own texture or the material's pattern")
     a, b = spec["values"]
     if colour:
         mix = nt.nodes.new("ShaderNodeMix")
@@ -76,9 +93,10 @@ def make_material(name: str, spec: dict):
     kind = spec["type"]
     if kind == "principled":
         bsdf = nt.nodes.new("ShaderNodeBsdfPrincipled")
+        mask = _pattern_mask(nt, spec["pattern"]) if "pattern" in spec else None
         for socket_name, key, colour in (("Base Color", "base_color", True), ("Roughness", "roughness", False),
                                          ("Metallic", "metallic", False)):
-            socket, const = _driven(nt, spec[key], colour)
+            socket, const = _driven(nt, spec[key], colour, mask)
             if socket is not None:
                 nt.links.new(socket, bsdf.inputs[socket_name])
             else:

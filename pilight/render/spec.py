@@ -59,6 +59,8 @@ def _material(rng: np.random.Generator, p: RenderParams) -> dict:
         if rng.uniform() < 0.5:
             return {"type": "glass", "color": _colour(rng), "roughness": round(float(rng.uniform(0, 0.2)), 4), "ior": 1.45}
         return {"type": "emission", "color": _colour(rng), "strength": round(float(rng.uniform(1.0, 4.0)), 3)}
+    if p.scene.material_pattern == "shared":
+        return _shared_pattern_material(rng, p)
     metal = 1.0 if rng.uniform() < p.scene.metallic_probability else 0.0
     return {
         "type": "principled",
@@ -66,6 +68,34 @@ def _material(rng: np.random.Generator, p: RenderParams) -> dict:
         "roughness": _channel(rng, p, round(float(rng.uniform(0.1, 0.9)), 4), 0.05, 1.0, colour=False),
         "metallic": _channel(rng, p, metal, 0.0, 1.0, colour=False),
     }
+
+
+# Half-width of the Fac band that a shared pattern's mask ramps across: narrow, so the two
+# sub-materials meet along a soft edge (anti-aliased, as in a baked material mask) instead of
+# blending over the whole of a noise texture, whose Fac stays mostly between 0.3 and 0.7.
+PATTERN_EDGE = 0.05
+
+
+def _shared_pattern_material(rng: np.random.Generator, p: RenderParams) -> dict:
+    """Two sub-materials (colour, roughness, metal 0 or 1) meeting along one procedural mask.
+
+    Why: in real PBR assets (the paper's Objaverse data) a material mask drives base colour,
+    roughness and metalness together, so where the albedo changes, the others may too, and
+    metalness is 0 or 1 away from edges. Independent textures per map make roughness and
+    metallic patterns that no image shows; "independent" keeps that older distribution."""
+    def sub() -> tuple[list[float], float, float]:
+        return (_colour(rng), round(float(rng.uniform(0.1, 0.9)), 4),
+                1.0 if rng.uniform() < p.scene.metallic_probability else 0.0)
+
+    first = sub()
+    if not (p.scene.textures and rng.uniform() < p.scene.textured_probability):
+        return {"type": "principled", **{k: {"const": v} for k, v in zip(("base_color", "roughness", "metallic"), first)}}
+    second = sub()
+    pattern = {"texture": str(rng.choice(p.scene.textures)), "scale": round(float(rng.uniform(2.0, 8.0)), 3),
+               "edge": PATTERN_EDGE}
+    channels = {k: {"const": a} if a == b else {"values": [a, b]}
+                for k, a, b in zip(("base_color", "roughness", "metallic"), first, second)}
+    return {"type": "principled", "pattern": pattern, **channels}
 
 
 def _object(rng, p: RenderParams, location, size: float) -> dict:

@@ -127,3 +127,34 @@ def test_unquoted_no_from_dvc_exp_run_means_no_mixed_precision(tmp_path):
     (tmp_path / "params.yaml").write_text(text)
     assert load_section("intrinsics", tmp_path / "params.yaml").train.mixed_precision == "fp32"
     assert load_section("relight", tmp_path / "params.yaml").train.mixed_precision == "fp32"
+
+
+def _principled_materials(specs):
+    for s in specs:
+        for o in s["objects"]:
+            if o["material"]["type"] == "principled":
+                yield o["material"]
+
+
+def test_shared_pattern_materials_blend_two_sub_materials_and_metal_is_0_or_1():
+    p, specs = _many()
+    mats = list(_principled_materials(specs))
+    textured = [m for m in mats if "pattern" in m]
+    assert 0.45 < len(textured) / len(mats) < 0.75, "about textured_probability (0.6) of the materials"
+    for m in mats:
+        for key in ("base_color", "roughness", "metallic"):
+            assert "texture" not in m[key], "channels read the material's one pattern, never their own"
+            assert ("values" in m[key]) == ("pattern" in m and "const" not in m[key])
+        metal = m["metallic"].get("values", [m["metallic"].get("const")])
+        assert set(metal) <= {0.0, 1.0}
+    # two sub-materials that differ in colour but are both dielectric keep metallic constant
+    assert any("values" in m["base_color"] and m["metallic"] == {"const": 0.0} for m in textured)
+    assert any("values" in m["metallic"] for m in textured)
+
+
+def test_independent_pattern_keeps_one_texture_per_map():
+    _, specs = _many(scene={"material_pattern": "independent"})
+    mats = list(_principled_materials(specs))
+    assert all("pattern" not in m for m in mats)
+    textured = [m[k] for m in mats for k in ("base_color", "roughness", "metallic") if "texture" in m[k]]
+    assert 0.45 < len(textured) / (3 * len(mats)) < 0.75

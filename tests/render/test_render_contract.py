@@ -182,3 +182,21 @@ def test_displacement_moves_vertices_along_the_normal(bpy_render):
     obj.data.vertices.foreach_get("co", co)
     r = np.linalg.norm(co.reshape(-1, 3), axis=1)
     assert r.std() > 1e-3 and np.all(np.abs(r - 0.7) <= 0.5 * 0.12 + 0.01)  # |value - 0.5| * strength
+
+
+@pytest.mark.parametrize("texture", ["checker", "noise"])
+def test_shared_pattern_drives_colour_roughness_and_metal_together(tmp_path, bpy_render, texture):
+    """A textured material is two sub-materials along one mask, so every pixel (edges and
+    anti-aliasing included) is one blend w of both: metallic (0 -> 1) gives w, and the albedo
+    and roughness must then be the same blend."""
+    a, b = (0.6, 0.1, 0.1), (0.1, 0.2, 0.7)
+    material = {"type": "principled", "pattern": {"texture": texture, "scale": 4.0, "edge": 0.05},
+                "base_color": {"values": [list(a), list(b)]}, "roughness": {"values": [0.2, 0.8]},
+                "metallic": {"values": [0.0, 1.0]}}
+    bpy_render(controlled_spec([sphere(material, scale=1.2)], [point_light((4.0, -3.0, 1.0))]), tmp_path)
+    view = _maps(tmp_path)
+    inner = _interior(view["mask"])
+    w = view["metallic"][inner][:, :1]
+    assert (w < 0.01).mean() > 0.1 and (w > 0.99).mean() > 0.1, "both sub-materials are visible"
+    np.testing.assert_allclose(view["albedo"][inner], (1 - w) * np.asarray(a) + w * np.asarray(b), atol=2e-3)
+    np.testing.assert_allclose(view["roughness"][inner][:, :1], 0.2 + 0.6 * w, atol=2e-3)
