@@ -5,8 +5,9 @@
 Stage 1 (intrinsics) in the paper's Table 1 / Table 7 layout, and stage 2 (relighting: PSNR/SSIM
 in the relight and reconstruction settings beside "copy the input" and analytic A * D_calc, the
 A D + S residual, the flipped-normal check) -> metrics.json (dvc metrics, shown by `dvc exp show`),
-reports/intrinsics.md, reports/relight.md and reports/intrinsics_grid.png (input | ground truth |
-prediction for each intrinsic).  LPIPS needs local backbone weights (`evaluate.lpips_backbone`);
+reports/intrinsics.md, reports/relight.md, reports/intrinsics_grid.png (input | ground truth |
+prediction for each intrinsic) and reports/relight_grid.png (target ball | input | target | relit,
+then ground truth | model for D and S).  LPIPS needs local backbone weights (`evaluate.lpips_backbone`);
 without them it is null in every table, with the reason. The relit predictions default to the `relit` folder
 beside the shards (data/relit); when that folder does not exist the relighting part is skipped and
 metrics.json says so.
@@ -21,6 +22,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from pilight import atomic  # noqa: E402
 from pilight.params import ParamsError, load_section  # noqa: E402
 
 
@@ -39,8 +41,6 @@ def main(argv: list[str] | None = None) -> int:
     except ParamsError as exc:
         print(f"evaluate: {exc}", file=sys.stderr)
         return 2
-    from PIL import Image
-
     from pilight.data.schema import DataError
     from pilight.eval.intrinsics import evaluate_intrinsics, markdown_table
     from pilight.eval.lpips import load_lpips
@@ -59,24 +59,26 @@ def main(argv: list[str] | None = None) -> int:
             from pilight.eval.relight import evaluate_relight, markdown_table as relight_table
 
             split = json.loads((relit_dir / "index.json").read_text()).get("sampling", {}).get("split", "test")
-            relight = evaluate_relight(args.shards, relit_dir, split, lpips=lpips, lpips_note=lpips_note)
+            relight = evaluate_relight(args.shards, relit_dir, split, lpips=lpips, lpips_note=lpips_note,
+                                       grid_pairs=ev.grid_images)
         else:
             relight = {"skipped": f"{relit_dir}/index.json not found (run the relight stage)"}
             print(f"evaluate: relighting skipped: {relight['skipped']}")
+        relight_grid = relight.pop("grid", None)
     except DataError as exc:
         print(f"evaluate: {exc}", file=sys.stderr)
         return 1
-    args.metrics.parent.mkdir(parents=True, exist_ok=True)
-    args.metrics.write_text(json.dumps({"intrinsics": result, "relight": relight}, indent=1, sort_keys=True) + "\n")
-    args.reports.mkdir(parents=True, exist_ok=True)
+    atomic.write_json(args.metrics, {"intrinsics": result, "relight": relight}, sort_keys=True)
     table = markdown_table(result, "test")
-    (args.reports / "intrinsics.md").write_text(table)
+    atomic.write_text(args.reports / "intrinsics.md", table)
     if grid is not None:
-        Image.fromarray(grid).save(args.reports / "intrinsics_grid.png")
+        atomic.write_png(args.reports / "intrinsics_grid.png", grid)
     print(table)
     if "skipped" not in relight:
         table = relight_table(relight, split)
-        (args.reports / "relight.md").write_text(table)
+        atomic.write_text(args.reports / "relight.md", table)
+        if relight_grid is not None:
+            atomic.write_png(args.reports / "relight_grid.png", relight_grid)
         print(table)
     return 0
 

@@ -10,13 +10,13 @@ timestep_spacing, ensemble, domains, splits); models/intrinsics + data/shards ->
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from pilight import atomic  # noqa: E402
 from pilight.params import ParamsError, load_section  # noqa: E402
 
 
@@ -73,9 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     out_index = write_predictions(args.out, {s: predictions(s) for s in splits}, info)
     per_image = timing["seconds"] / max(timing["images"], 1)
     # Timings vary run to run: they go to a metrics file, never into the (deterministic) output.
-    args.metrics.parent.mkdir(parents=True, exist_ok=True)
-    args.metrics.write_text(json.dumps({"seconds_per_image": per_image, "images": timing["images"],
-                                        "samples": {s: v["samples"] for s, v in out_index["splits"].items()}}, indent=1) + "\n")
+    atomic.write_json(args.metrics, {"seconds_per_image": per_image, "images": timing["images"],
+                                     "samples": {s: v["samples"] for s, v in out_index["splits"].items()}})
     print(f"infer_intrinsics: {timing['images']} images, {per_image:.3f} s/image ({ip.mode}, {ip.steps} steps, "
           f"cfg {ip.cfg_scale}, ensemble {ip.ensemble}, domains {list(ip.domains)}) -> {args.out}")
     return 0

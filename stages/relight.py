@@ -27,6 +27,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from pilight import atomic  # noqa: E402
 from pilight.params import ParamsError, load_section  # noqa: E402
 
 
@@ -111,10 +112,9 @@ def main(argv: list[str] | None = None) -> int:
                 "what": "(R - L) / (R + L) of masked D_pred over right-/left-facing pixels (unflipped n_x > 0.2 / "
                 "< -0.2); if D_pred follows N, flipping N_x flips the sign"}
     per_pair = timing["seconds"] / max(timing["pairs"], 1)
-    args.metrics.parent.mkdir(parents=True, exist_ok=True)
-    args.metrics.write_text(json.dumps({"seconds_per_pair": per_pair, "pairs": timing["pairs"], "conditions": source,
-                                        "samples": out_index["splits"][split]["samples"], "flip_check_d_pred": flip},
-                                       indent=1, sort_keys=True) + "\n")
+    atomic.write_json(args.metrics, {"seconds_per_pair": per_pair, "pairs": timing["pairs"], "conditions": source,
+                                     "samples": out_index["splits"][split]["samples"], "flip_check_d_pred": flip},
+                      sort_keys=True)
     print(f"relight: {timing['pairs']} pairs, {per_pair:.3f} s/pair ({ip.mode}, {ip.steps} steps, cfg {ip.cfg_scale}, "
           f"ensemble {ip.ensemble}, conditions {source}) -> {args.out}")
     return 0

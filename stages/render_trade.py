@@ -17,13 +17,13 @@ Writes metrics/render_trade.json, plots/render_trade.json (dvc plots) and report
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from pilight import atomic  # noqa: E402
 from pilight.params import ParamsError, load_section  # noqa: E402
 
 
@@ -100,16 +100,15 @@ def main(argv: list[str] | None = None) -> int:
     for d in (args.metrics.parent, args.plots, args.reports):
         d.mkdir(parents=True, exist_ok=True)
     res = p.resolution
-    args.metrics.write_text(json.dumps({"resolution": res, "reference_spp": tp.render_reference_spp, "points": rows},
-                                       indent=1) + "\n")
-    (args.plots / "render_trade.json").write_text(json.dumps([r for r in rows if r["what"] == "spp"], indent=1) + "\n")
+    atomic.write_json(args.metrics, {"resolution": res, "reference_spp": tp.render_reference_spp, "points": rows})
+    atomic.write_json(args.plots / "render_trade.json", [r for r in rows if r["what"] == "spp"])
     lines = [f"Render side: samples per pixel against noise and seconds ({res}², view 0 / light 0 of the first object "
              f"and room scene; reference {tp.render_reference_spp} spp with another seed; PSNR on tone-mapped images)", "",
              "| scene | spp | adaptive threshold | seconds | PSNR vs reference (dB) | RMSE |", "|---|---|---|---|---|---|"]
     lines += [f"| {r['scene']} ({r['objects']} obj.) | {r['spp']}{' (pipeline)' if r['what'] == 'pipeline' else ''} | "
               f"{r['adaptive_threshold']:g} | {r['seconds']:.2f} | {r['psnr_vs_reference']:.2f} | {r['rmse']:.4f} |" for r in rows]
     md = "\n".join(lines) + "\n"
-    (args.reports / "render_trade.md").write_text(md)
+    atomic.write_text(args.reports / "render_trade.md", md)
     _plot(rows, args.reports / "render_trade.png", res)
     print(md)
     return 0
@@ -138,7 +137,7 @@ def _plot(rows: list[dict], path: Path, res: int) -> None:
     axes[0].legend(fontsize=7)
     fig.suptitle(f"Render side of the trade ({res}², beauty pass)", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110, metadata={"Software": None})
+    atomic.save_figure(fig, path, dpi=110, metadata={"Software": None})
     plt.close(fig)
 
 

@@ -26,6 +26,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from pilight import atomic  # noqa: E402
 from pilight.params import ParamsError, load_section  # noqa: E402
 
 INTRINSICS_METRICS = {"albedo_psnr": ("albedo PSNR (dB) ↑", True), "normal_mean_deg": ("normal mean error (°) ↓", False),
@@ -105,7 +106,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"trade: {exc}", file=sys.stderr)
         return 2
     import torch
-    from PIL import Image
     from tqdm import tqdm
 
     from pilight.data.schema import DataError
@@ -177,12 +177,12 @@ def main(argv: list[str] | None = None) -> int:
         d.mkdir(parents=True, exist_ok=True)
     conditions = "stage-1 predictions" if preds is not None else "ground-truth intrinsics"
     result = {"intrinsics": {"images": n1, "points": rows1}, "relight": {"pairs": n2, "conditions": conditions, "points": rows2}}
-    args.metrics.write_text(json.dumps(result, indent=1) + "\n")
+    atomic.write_json(args.metrics, result)
     for name, rows, metrics in (("intrinsics", rows1, INTRINSICS_METRICS), ("relight", rows2, RELIGHT_METRICS)):
-        (args.plots / f"trade_{name}.json").write_text(json.dumps(rows, indent=1) + "\n")
+        atomic.write_json(args.plots / f"trade_{name}.json", rows)
         for key in metrics:
             front = sorted((r for r in rows if r.get(f"pareto_{key}")), key=lambda r: r["seconds_per_image"])
-            (args.plots / f"trade_{name}_pareto_{key}.json").write_text(json.dumps(front, indent=1) + "\n")
+            atomic.write_json(args.plots / f"trade_{name}_pareto_{key}.json", front)
         trade.plot_png(rows, metrics, args.reports / f"trade_{name}.png",
                        f"{'Stage 1' if name == 'intrinsics' else 'Stage 2'}: seconds per image vs accuracy "
                        f"({n1 if name == 'intrinsics' else n2} test {'images' if name == 'intrinsics' else 'pairs'})")
@@ -191,8 +191,8 @@ def main(argv: list[str] | None = None) -> int:
           + "\n" + trade.markdown_table(rows2, {k: v for k, (v, _) in RELIGHT_METRICS.items()},
                                         f"Stage 2 speed/accuracy trade ({n2} cross-light test pairs, conditions: "
                                         f"{conditions}, around `relight_infer`)"))
-    (args.reports / "trade.md").write_text(md)
-    Image.fromarray(grid).save(args.reports / "relit_lights.png")
+    atomic.write_text(args.reports / "trade.md", md)
+    atomic.write_png(args.reports / "relit_lights.png", grid)
     print(md)
     return 0
 

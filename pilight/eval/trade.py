@@ -23,6 +23,7 @@ from typing import Callable
 
 import torch
 
+from pilight import atomic
 from pilight.params import SamplingParams, TradeParams
 
 
@@ -133,5 +134,5 @@ def plot_png(rows: list[dict], metrics: dict[str, tuple[str, bool]], path, title
     axes[0][0].legend(fontsize=7)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110, metadata={"Software": None})  # no version string: same data, same bytes
+    atomic.save_figure(fig, path, dpi=110, metadata={"Software": None})  # no version string: same data, same bytes
     plt.close(fig)

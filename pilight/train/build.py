@@ -15,6 +15,7 @@ from pathlib import Path
 import torch
 from safetensors.torch import load_file, save_file
 
+from pilight import atomic
 from pilight.diffusion.attention import set_cross_batch_attention
 from pilight.diffusion.codec import make_codec
 from pilight.diffusion.conditioning import make_conditioning, null_like
@@ -106,7 +107,7 @@ def save_model(stack: Stack, out_dir: Path, params: dict) -> None:
     tmp = out_dir / ".model.safetensors.tmp"
     save_file(trainable_state(stack.model), str(tmp))
     os.replace(tmp, out_dir / "model.safetensors")
-    (out_dir / "config.json").write_text(json.dumps({"params": params, "parts": stack.describe()}, indent=1, sort_keys=True))
+    atomic.write_text(out_dir / "config.json", json.dumps({"params": params, "parts": stack.describe()}, indent=1, sort_keys=True))
 
 
 def load_model(stack: Stack, model_dir: Path) -> None:

@@ -4,7 +4,6 @@ save the model.  Each script keeps only its params section and how its task is b
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 from typing import Any, Callable
@@ -19,6 +18,7 @@ def run_training_stage(name: str, section: str, base: Any, p: Any, make_task: Ca
     ``out/task.json`` for reports."""
     import torch
 
+    from pilight import atomic
     from pilight.data.schema import DataError
     from pilight.data.shards import read_index
     from pilight.train.build import ModelError, check_image_size, save_model
@@ -44,7 +44,7 @@ def run_training_stage(name: str, section: str, base: Any, p: Any, make_task: Ca
     stats = train(task, loop_config(p.train, base.seed), checkpoints, live, identity=identity)
     save_model(task.stack, out, p.model_dump(mode="json"))
     if described is not None:
-        (out / "task.json").write_text(json.dumps(described, indent=1, sort_keys=True) + "\n")
+        atomic.write_json(out / "task.json", described, sort_keys=True)
     print(f"{name}: {stats['steps']} steps in {stats['seconds']:.0f} s "
           f"({stats['samples_per_second']:.2f} samples/s), final loss {stats['final_loss']:.4f} -> {out}")
     return 0
