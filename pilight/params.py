@@ -376,7 +376,7 @@ class TradeParams(_Section):
 class EvaluateParams(_Section):
     lpips_net: Literal["alex", "vgg", "squeeze"] = "alex"
     lpips_backbone: str | None = Field(None, description="local safetensors of the LPIPS backbone; null = LPIPS reported as null with the reason")
-    grid_images: int = Field(4, ge=1, description="test images in the input | ground truth | prediction grid")
+    grid_images: int = Field(4, ge=1, description="test images (pairs) in the intrinsics (relight) grid of reports/")
     relight_lights: int = Field(6, ge=1, description="analytic lights around one test image in the relit-under-several-lights grid")
     trade: TradeParams = TradeParams()
 

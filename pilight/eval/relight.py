@@ -56,12 +56,31 @@ def lr_asymmetry(d: torch.Tensor, normal: torch.Tensor, mask: torch.Tensor, thr:
     return (r - l) / (r + l + eps)
 
 
-def evaluate_relight(shard_dir: Path, relit_dir: Path, split: str = "test", lpips=None, lpips_note: str = "") -> dict:
+def grid_row(ball: torch.Tensor, image_a: torch.Tensor, image_b: torch.Tensor, pred: dict[str, torch.Tensor],
+             gt_d: torch.Tensor, gt_s: torch.Tensor) -> torch.Tensor:
+    """One cross-light pair as (3, H, W * tiles) in [0, 1]: target ball | input | target | model relit,
+    then ground truth | model for D and S when the model has those branches."""
+    h = image_a.shape[-1]
+    ball = torch.nn.functional.interpolate(ball[None].float(), size=(h, h), mode="nearest")[0]
+    tiles = [ball, image_a, image_b, pred["relit"]]
+    if "diffuse" in pred:
+        tiles += [gt_d, pred["diffuse"], gt_s, pred["specular"]]
+    return torch.cat([tonemap01(t[None])[0] for t in tiles], dim=2)
+
+
+GRID_COLUMNS = "target ball | input | target | model relit | D ground truth | D model | S ground truth | S model"
+
+
+def evaluate_relight(shard_dir: Path, relit_dir: Path, split: str = "test", lpips=None, lpips_note: str = "",
+                     grid_pairs: int = 0) -> dict:
+    """Metrics (see the module docstring); with ``grid_pairs`` > 0 also "grid": that many cross-light
+    pairs as an (H * n, W * tiles, 3) uint8 image, columns as in GRID_COLUMNS."""
     relit = read_predictions(Path(relit_dir), split)
     info = json.loads((Path(relit_dir) / "index.json").read_text())
     rows: dict[str, dict[str, list[torch.Tensor]]] = {s: {} for s in ("relight", "reconstruction")}
     resid = {"model": [], "ground_truth": []}
     flip_a, flip_b = [], []
+    grid_rows: list[torch.Tensor] = []
     n = 0
     for b in make_loader(eval_dataset(shard_dir, split, "relight"), 8):
         keys = b["key"]
@@ -73,6 +92,9 @@ def evaluate_relight(shard_dir: Path, relit_dir: Path, split: str = "test", lpip
                 for k in ("relit", "diffuse", "specular") if k in relit[keys[0]]}
         same = torch.tensor([json.loads(a)["light"] == json.loads(c)["light"] for a, c in zip(b["meta_a"], b["meta_b"])])
         d_calc = diffuse_calculated(b["ball_b"], b["normal"], b["mask"], b["metallic"])
+        for i in torch.nonzero(~same).flatten().tolist()[:max(0, grid_pairs - len(grid_rows))]:
+            grid_rows.append(grid_row(b["ball_b"][i], b["image_a"][i], b["image_b"][i], {k: v[i] for k, v in pred.items()},
+                                      b["diffuse_b"][i], b["specular_b"][i]))
         gt = tonemap01(b["image_b"])
         cands = {"model": pred["relit"], "copy_input": b["image_a"], "analytic_ad": b["albedo"] * d_calc}
         for name, img in cands.items():
@@ -114,6 +136,8 @@ def evaluate_relight(shard_dir: Path, relit_dir: Path, split: str = "test", lpip
         "pairs_considered": int(lit.sum()),
         "what": "(R - L) / (R + L) of masked D_calc over right-/left-facing pixels (n_x > 0.2 / < -0.2 of the "
                 "unflipped N); flipping N_x should flip the sign"}
+    if grid_rows:
+        out["grid"] = (torch.cat(grid_rows, dim=1).clamp(0, 1).permute(1, 2, 0) * 255 + 0.5).byte().numpy()
     return out
 
 
