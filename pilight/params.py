@@ -309,6 +309,16 @@ class RelightParams(ModelParams):
     relit_target: Literal["image", "residual"] = Field(
         "image", description="image = the paper's relit branch; residual = its latent minus the input's latent "
                              "(so 'copy the input' is the zero prediction)")
+    d_calc_condition: tuple[Literal["relit", "diffuse", "specular"], ...] = Field(
+        (), description="branches that also get D_calc (Lambertian lookup of the target ball with the conditioning "
+                        "normals) as a condition map; () = the paper")
+
+    @field_validator("d_calc_condition")
+    @classmethod
+    def _d_calc_branches(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        if len(set(v)) != len(v):
+            raise ValueError(f"d_calc_condition names a branch twice: {list(v)}")
+        return v
 
     @model_validator(mode="after")
     def _dinov2(self) -> "RelightParams":

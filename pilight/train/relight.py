@@ -50,6 +50,13 @@ decoded (physics terms, inference). A relit image mostly repeats its input, so "
 then the zero prediction and a model trained for a few hundred CPU steps starts from it instead of
 having to learn the identity through the UNet. The D and S branches are unchanged.
 
+`d_calc_condition` (ours, default () = the paper): the named branches also read D_calc, the
+Lambertian lookup of the target (gray) ball with the CONDITIONING normals and metallic, as one more
+condition map. It holds no information the branch lacks (N and L are there), but reading the ball
+where it faces like this pixel is a non-local lookup that a small UNet trained from scratch does
+not learn in a CPU budget. The relit branch, which in the paper sees only (I_in, A), otherwise
+hears of the target light only through cross-batch attention.
+
 When decomposition is false there are no D/S branches: L_DS and L_PS are 0 (logged as such, with
 `ds_ps_defined = 0`).
 """
@@ -90,13 +97,18 @@ TONEMAP_EPS = 1e-6
 PHYSICS_SPACE = "tonemapped"
 
 
-def branch_layout(decomposition: bool) -> dict[str, tuple[str, ...]]:
-    return dict(BRANCH_MAPS) if decomposition else {"relit": ABLATION_MAPS}
+def branch_layout(decomposition: bool, d_calc_branches: tuple[str, ...] = ()) -> dict[str, tuple[str, ...]]:
+    """Condition maps per branch. ``d_calc_branches`` (relight.d_calc_condition) also get "d_calc";
+    without decomposition the one branch gets it when any branch is named (the ablation keeps every
+    input, as with ABLATION_MAPS)."""
+    if not decomposition:
+        return {"relit": ABLATION_MAPS + (("d_calc",) if d_calc_branches else ())}
+    return {b: maps + (("d_calc",) if b in d_calc_branches else ()) for b, maps in BRANCH_MAPS.items()}
 
 
-def cond_width(decomposition: bool) -> int:
-    """Condition maps per item after padding: the widest branch (5), or 7 for the ablation."""
-    return max(len(m) for m in branch_layout(decomposition).values())
+def cond_width(decomposition: bool, d_calc_branches: tuple[str, ...] = ()) -> int:
+    """Condition maps per item after padding: the widest branch (5, or 6 with D_calc), or 7 (8) for the ablation."""
+    return max(len(m) for m in branch_layout(decomposition, d_calc_branches).values())
 
 
 def tonemap(x: torch.Tensor) -> torch.Tensor:
@@ -111,16 +123,24 @@ def to_linear(y: torch.Tensor) -> torch.Tensor:
 
 
 def condition_images(image_a: torch.Tensor, intr: dict[str, torch.Tensor], ball: torch.Tensor,
-                     mask: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Every condition map as a (B, 3, H, W) image in [-1, 1] (linear inputs, schema mappings)."""
+                     mask: torch.Tensor, with_d_calc: bool = False) -> dict[str, torch.Tensor]:
+    """Every condition map as a (B, 3, H, W) image in [-1, 1] (linear inputs, schema mappings).
+
+    ``with_d_calc`` adds "d_calc": the Lambertian lookup of this (gray) ball with the CONDITIONING
+    normals and metallic, i.e. a function of inputs the branch already has. It only spares the
+    UNet the non-local lookup (which ball pixel faces the same way as this normal), which a small
+    model trained from scratch does not learn in a CPU budget."""
     h, w = image_a.shape[-2:]
-    ball = F.interpolate(ball.float(), size=(h, w), mode="bilinear", align_corners=False).clamp_min(0)
+    up = F.interpolate(ball.float(), size=(h, w), mode="bilinear", align_corners=False).clamp_min(0)
     rep = lambda x: x.expand(-1, 3, -1, -1) if x.shape[1] == 1 else x
-    return {"image": schema.to_model("image", image_a), "albedo": schema.to_model("albedo", intr["albedo"]),
-            "normal": schema.to_model("normal", intr["normal"]), "ball": schema.to_model("ball", ball),
+    maps = {"image": schema.to_model("image", image_a), "albedo": schema.to_model("albedo", intr["albedo"]),
+            "normal": schema.to_model("normal", intr["normal"]), "ball": schema.to_model("ball", up),
             "metallic": rep(schema.to_model("metallic", intr["metallic"])),
             "roughness": rep(schema.to_model("roughness", intr["roughness"])),
             "mask": rep(schema.to_model("mask", mask))}
+    if with_d_calc:
+        maps["d_calc"] = schema.to_model("image", diffuse_calculated(ball, intr["normal"], mask, intr["metallic"]))
+    return maps
 
 
 def encode_conditions(codec, maps: dict[str, torch.Tensor], layout: dict[str, tuple[str, ...]],
@@ -236,10 +256,11 @@ class RelightTask:
     def __init__(self, p: RelightParams, shard_dir: Path, *, seed: int, pred_dir: Path | None = None,
                  device: str = "cpu", physics_space: str = PHYSICS_SPACE):
         self.p, self.shard_dir, self.seed, self.device = p, Path(shard_dir), seed, device
-        self.layout = branch_layout(p.decomposition)
+        self.layout = branch_layout(p.decomposition, p.d_calc_condition)
+        self.with_d_calc = any("d_calc" in maps for maps in self.layout.values())
         self.branches = tuple(self.layout)
         self.V = len(self.branches)
-        self.width = cond_width(p.decomposition)
+        self.width = cond_width(p.decomposition, p.d_calc_condition)
         codec_channels = _latent_channels(p)
         self.stack: Stack = build_stack(p, num_domains=self.V, cond_channels=self.width * codec_channels)
         self.extractor = make_feature_extractor(p.rec_features, p.dinov2_path)
@@ -259,6 +280,7 @@ class RelightTask:
         return {**self.stack.describe(), "rec_features": self.extractor.name, "relit_target": self.p.relit_target,
                 "physics_space": self.physics_space,
                 "branches": list(self.branches), "conditions": self.p.conditions,
+                "condition_maps": {b: list(m) for b, m in self.layout.items()},
                 "d_calc": f"Lambertian lookup of the {self.p.ds_ball} ball x (1 - metallic)"}
 
     def trainable(self) -> torch.nn.Module:
@@ -308,7 +330,7 @@ class RelightTask:
         intr = {k: v.to(dev) for k, v in choose_intrinsics(batch, use_pred, self.preds).items()}
         mask = batch["mask"].to(dev)
         with torch.no_grad():
-            maps = condition_images(batch["image_a"].to(dev), intr, batch["ball_b"].to(dev), mask)
+            maps = condition_images(batch["image_a"].to(dev), intr, batch["ball_b"].to(dev), mask, self.with_d_calc)
             z_cond = encode_conditions(s.codec, maps, self.layout, self.width)
             z0 = s.codec.encode(branch_targets(batch, self.branches).flatten(0, 1).to(dev).float())
             offset = self._input_offset(z_cond)
@@ -357,7 +379,7 @@ class RelightTask:
         intr = {d: (intr or batch)[d].to(dev) for d in PRED_DOMAINS}
         image_a = batch["image_a"].to(dev)
         B = image_a.shape[0]
-        maps = condition_images(image_a, intr, batch["ball_b"].to(dev), batch["mask"].to(dev))
+        maps = condition_images(image_a, intr, batch["ball_b"].to(dev), batch["mask"].to(dev), self.with_d_calc)
         z_cond = encode_conditions(s.codec, maps, self.layout, self.width)
         ids = torch.arange(V, device=dev).repeat(B)
         ehs = s.encode_condition(maps["image"], torch.zeros(B, dtype=torch.bool, device=dev)).repeat_interleave(V, 0)

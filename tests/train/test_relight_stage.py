@@ -117,6 +117,38 @@ def test_conditions_are_padded_to_one_width(shards):
     assert (z[0, 2 * lc:] == 0).all() and (z[1, 3 * lc:] == 0).all() and (z[2, 4 * lc:] != 0).any()
 
 
+def test_d_calc_condition_adds_the_lookup_of_the_conditioning_normals(shards):
+    from pilight.data import schema
+    from pilight.train.relight import condition_images, diffuse_calculated
+
+    task = RelightTask(_p(d_calc_condition=["relit", "diffuse"]), shards, seed=0)
+    assert task.layout == {"relit": ("image", "albedo", "d_calc"), "diffuse": ("normal", "ball", "mask", "d_calc"),
+                           "specular": ("normal", "ball", "metallic", "roughness", "mask")}
+    assert task.width == 5
+    b = _batch(shards)
+    intr = {d: b[d] for d in PRED_DOMAINS}
+    intr["normal"] = -b["normal"]  # conditioning normals, not the ground truth, drive the lookup
+    maps = condition_images(b["image_a"], intr, b["ball_b"], b["mask"], with_d_calc=True)
+    want = schema.to_model("image", diffuse_calculated(b["ball_b"], -b["normal"], b["mask"], b["metallic"]))
+    torch.testing.assert_close(maps["d_calc"], want)
+    assert not torch.allclose(want, schema.to_model("image", diffuse_calculated(b["ball_b"], b["normal"], b["mask"],
+                                                                                  b["metallic"])))
+    lc = task.stack.codec.latent_channels
+    z = encode_conditions(task.stack.codec, maps, task.layout, task.width).unflatten(0, (2, 3))
+    d_lat = task.stack.codec.encode(want)
+    torch.testing.assert_close(z[:, 0, 2 * lc:3 * lc], d_lat)  # relit: image, albedo, d_calc
+    torch.testing.assert_close(z[:, 1, 3 * lc:4 * lc], d_lat)  # diffuse: normal, ball, mask, d_calc
+    loss, _ = task.loss(b, torch.Generator().manual_seed(0))
+    assert torch.isfinite(loss)
+    out = task.predict(b, SamplingParams(mode="single_step"), torch.Generator().manual_seed(0))
+    assert out["relit"].shape == (2, 3, 16, 16)
+    with pytest.warns(UserWarning):
+        ablation = RelightTask(_p(decomposition=False, d_calc_condition=["diffuse"]), shards, seed=0)
+    assert ablation.layout["relit"][-1] == "d_calc" and ablation.width == 8
+    with pytest.raises(ValueError, match="twice"):
+        _p(d_calc_condition=["relit", "relit"])
+
+
 def test_decomposition_false_is_one_branch(shards):
     with pytest.warns(UserWarning, match="L_DS and L_PS are undefined"):
         task = RelightTask(_p(decomposition=False), shards, seed=0)
