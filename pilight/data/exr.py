@@ -17,6 +17,8 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
+from pilight import atomic
+
 _CHANNELS = {1: ("Y",), 3: ("R", "G", "B"), 4: ("R", "G", "B", "A")}
 # Blender names its pass channels with these suffixes; the order we want them in.
 _SUFFIX_ORDER = "RGBAXYZV"
@@ -42,16 +44,12 @@ def write_exr(path: str | os.PathLike, array: np.ndarray, *, half: bool) -> None
         for i, name in enumerate(_CHANNELS[arr.shape[2]])
     }
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
+
+    def write(tmp: str) -> None:
         with OpenEXR.File(header, channels) as f:
             f.write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+
+    atomic.write_with(path, write)
 
 
 def read_exr(path: str | os.PathLike) -> np.ndarray:

@@ -8,7 +8,6 @@ pretrained parts such as a CLIP encoder or a VAE are reloaded from their own loc
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -104,9 +103,8 @@ def trainable_state(model: torch.nn.Module) -> dict[str, torch.Tensor]:
 def save_model(stack: Stack, out_dir: Path, params: dict) -> None:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    tmp = out_dir / ".model.safetensors.tmp"
-    save_file(trainable_state(stack.model), str(tmp))
-    os.replace(tmp, out_dir / "model.safetensors")
+    state = trainable_state(stack.model)
+    atomic.write_with(out_dir / "model.safetensors", lambda tmp: save_file(state, tmp))
     atomic.write_text(out_dir / "config.json", json.dumps({"params": params, "parts": stack.describe()}, indent=1, sort_keys=True))
 
 
