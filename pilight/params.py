@@ -246,6 +246,17 @@ class ScheduleParams(_Section):
     beta_schedule: Literal["linear", "scaled_linear", "squaredcos_cap_v2"] = "scaled_linear"
     rescale_zero_snr: bool = False
     timestep_spacing: Literal["leading", "trailing", "linspace"] = "leading"
+    terminal_input: Literal["noise", "zero"] = Field(
+        "noise", description="what the UNet reads as its latent at t = T-1: noise (the paper) | zero (ours, "
+        "as E2E-FT): with zero terminal SNR x_T holds nothing of x0, so its mean, 0, removes input noise "
+        "from the single-step prediction; training and every sampler see the same")
+
+    @model_validator(mode="after")
+    def _terminal_input(self) -> "ScheduleParams":
+        if self.terminal_input == "zero" and not self.rescale_zero_snr:
+            raise ValueError("schedule.terminal_input 'zero' needs schedule.rescale_zero_snr: true (without zero "
+                             "terminal SNR x_T still carries x0, and zeroing it would discard signal)")
+        return self
 
 
 class TrainParams(_Section):

@@ -60,6 +60,9 @@ class DomainDiffusion(nn.Module):
             # V = 1 would install plain processors; install V >= 2 and set V in place below.
             set_cross_batch_attention(unet, max(2, num_views) if cross_batch else None)
         self.set_views(num_views)
+        # Items at this timestep read a zero latent instead of x_t (schedule.terminal_input: zero);
+        # None = they read x_t. Set by the builder; both training and sampling go through forward().
+        self.terminal_timestep: int | None = None
 
     def _cross_batch_processors(self) -> list[CrossBatchAttnProcessor]:
         return [p for p in self.unet.attn_processors.values() if isinstance(p, CrossBatchAttnProcessor)]
@@ -102,12 +105,18 @@ class DomainDiffusion(nn.Module):
         if int(domain_ids.min()) < 0 or int(domain_ids.max()) >= self.num_domains:
             raise ValueError(f"domain_ids must lie in [0, {self.num_domains}), got {domain_ids.tolist()}")
 
+        if timesteps.ndim == 0:
+            timesteps = timesteps.expand(n)
+        if self.terminal_timestep is not None:
+            # Zero-SNR x_T is pure noise, independent of x0: feed its mean so the x0 estimate there
+            # is a deterministic function of the condition (E2E-FT). The sampler still steps from
+            # the real x_T, so DDIM stays exact: at a_T = 0 its eps estimate is x_T itself.
+            at_end = (timesteps == self.terminal_timestep).view(-1, 1, 1, 1)
+            noisy_latents = torch.where(at_end, torch.zeros_like(noisy_latents), noisy_latents)
         pad = self.cond_channels - cond_latents.shape[1]
         if pad:
             cond_latents = F.pad(cond_latents, (0, 0, 0, 0, 0, pad))
         sample = torch.cat([noisy_latents, cond_latents.to(noisy_latents.dtype)], dim=1)
         onehot = F.one_hot(domain_ids, self.num_domains).to(noisy_latents.dtype)
-        if timesteps.ndim == 0:
-            timesteps = timesteps.expand(n)
         return self.unet(sample, timesteps, encoder_hidden_states=encoder_hidden_states,
                          class_labels=onehot).sample

@@ -86,6 +86,7 @@ def build_stack(p, *, num_domains: int, num_views: int | None = None, cond_chann
     model = DomainDiffusion(unet, conditioning, num_domains=num_domains, cond_channels=cond)
     s = p.schedule
     scheduler = make_train_scheduler(s.num_train_timesteps, s.beta_schedule, s.rescale_zero_snr, s.timestep_spacing)
+    model.terminal_timestep = s.num_train_timesteps - 1 if s.terminal_input == "zero" else None
     return Stack(codec, model, scheduler, num_views, p.cross_batch_attention)
 
 

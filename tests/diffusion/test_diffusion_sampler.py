@@ -144,6 +144,42 @@ def test_model_keeps_installed_attention_and_set_views_is_reversible():
     assert {p.num_views for p in unet.attn_processors.values() if hasattr(p, "num_views")} == {4}
 
 
+def test_terminal_input_zero_makes_the_terminal_prediction_deterministic():
+    """schedule.terminal_input: zero: at t = T-1 the UNet reads 0 instead of x_t, at every other t
+    it reads x_t; single-step results then no longer depend on the noise draw."""
+    model = _model()
+    cond, ids, ehs, n = _inputs(2, 4)
+    x, y = torch.randn(2, n, LATENT, 8, 8, generator=torch.Generator().manual_seed(1))
+    t = torch.tensor([999] * 4 + [500] * 4)  # one timestep per sample, shared by its views
+    with torch.no_grad():
+        plain = model(x, cond, t, ids, ehs)
+        zeroed_by_hand = model(torch.cat([torch.zeros_like(x[:4]), x[4:]]), cond, t, ids, ehs)
+        model.terminal_timestep = 999
+        vx, vy = model(x, cond, t, ids, ehs), model(y, cond, t, ids, ehs)
+    torch.testing.assert_close(vx, zeroed_by_hand, atol=0, rtol=0)  # exactly "zero the terminal items"
+    assert not torch.equal(vx, plain)
+    torch.testing.assert_close(vx[:4], vy[:4], atol=0, rtol=0)  # the terminal sample ignores x_t
+    assert not torch.equal(vx[4:], vy[4:])  # t = 500 still reads its noisy latent
+
+    zero_snr = make_train_scheduler(rescale_zero_snr=True, timestep_spacing="trailing").config
+    run = lambda seed, **kw: sample(model, cond, ids, ehs, num_views=4, scheduler_config=zero_snr,
+                                    generator=torch.Generator().manual_seed(seed), **kw)
+    single = run(0, mode="single_step")
+    torch.testing.assert_close(run(1, mode="single_step"), single, atol=0, rtol=0)
+    torch.testing.assert_close(run(0, mode="single_step", ensemble=3), single, atol=1e-6, rtol=0)
+    torch.testing.assert_close(run(1, steps=1), single, atol=1e-5, rtol=0)  # trailing 1-step DDIM = single step
+    assert not torch.equal(run(0, steps=3), run(1, steps=3))  # later DDIM steps still read x_t
+
+
+def test_terminal_input_zero_needs_zero_snr():
+    from pydantic import ValidationError
+
+    from pilight.params import ScheduleParams
+    assert ScheduleParams(rescale_zero_snr=True, terminal_input="zero").terminal_input == "zero"
+    with pytest.raises(ValidationError, match="terminal_input 'zero' needs schedule.rescale_zero_snr"):
+        ScheduleParams(rescale_zero_snr=False, terminal_input="zero")
+
+
 class _OracleV(torch.nn.Module):
     """A 'perfect' model for one known x0: from (x_t, t) it returns the exact v that the
     forward process would have produced, v = sqrt(a) eps - sqrt(1-a) x0, eps recovered from x_t.
@@ -159,16 +195,21 @@ class _OracleV(torch.nn.Module):
     def set_views(self, views):
         self.num_views = views
 
+    terminal_zero = False  # read 0 instead of x_t at t = T-1 (schedule.terminal_input: zero)
+
     def forward(self, x_t, cond, t, ids, ehs):
+        if self.terminal_zero:
+            x_t = torch.where((t == len(self.alphas) - 1).view(-1, 1, 1, 1), torch.zeros_like(x_t), x_t)
         a = self.alphas[t.long()].view(-1, 1, 1, 1)
         x0 = self.x0.repeat(x_t.shape[0] // self.x0.shape[0], 1, 1, 1).double()
         eps = (x_t.double() - a.sqrt() * x0) / (1 - a).sqrt()
         return (a.sqrt() * eps - (1 - a).sqrt() * x0).float()
 
 
-@pytest.mark.parametrize("zero_snr,spacing", [(True, "trailing"), (True, "leading"), (False, "trailing")])
+@pytest.mark.parametrize("zero_snr,spacing,terminal_zero", [(True, "trailing", False), (True, "leading", False),
+                                                          (False, "trailing", False), (True, "trailing", True)])
 @pytest.mark.parametrize("steps", [1, 4, 25])
-def test_ddim_with_the_exact_v_recovers_x0(zero_snr, spacing, steps):
+def test_ddim_with_the_exact_v_recovers_x0(zero_snr, spacing, terminal_zero, steps):
     # The loop itself (scheduler config, timestep order, v -> x0 inside DDIMScheduler) must be
     # lossless: if an oracle's exact v did not give back x0, multi-step results would be wrong
     # for reasons no amount of training fixes (wrong prediction type, alpha at the final step,
@@ -177,6 +218,7 @@ def test_ddim_with_the_exact_v_recovers_x0(zero_snr, spacing, steps):
     x0 = torch.randn(2 * DOMAINS, LATENT, 8, 8, generator=torch.Generator().manual_seed(3))
     scheduler = make_train_scheduler(rescale_zero_snr=zero_snr)
     oracle = _OracleV(x0, scheduler.alphas_cumprod)
+    oracle.terminal_zero = terminal_zero  # the sampler steps from the real x_T, so this stays exact
     cond, ids, ehs, _ = _inputs(2, DOMAINS)
     out = sample(oracle, cond, ids, ehs, num_views=DOMAINS, steps=steps, timestep_spacing=spacing,
                  generator=torch.Generator().manual_seed(0), scheduler_config=config, ensemble=2)
