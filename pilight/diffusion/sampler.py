@@ -12,6 +12,7 @@ conditional and unconditional views are never mixed.
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import torch
@@ -53,6 +54,11 @@ def sample(model, cond_latents: torch.Tensor, domain_ids: torch.Tensor, encoder_
         raise ValueError(f"unknown sampling mode {mode!r}; expected 'ddim' or 'single_step'")
     if ensemble < 1 or steps < 1:
         raise ValueError(f"ensemble and steps must be >= 1, got {ensemble} and {steps}")
+
+    if mode == "single_step" and ensemble > 1 and getattr(model, "terminal_timestep", None) is not None:
+        warnings.warn(f"ensemble={ensemble} with single-step sampling repeats one prediction: the model reads 0, "
+                      "not the noise, at t = T-1 (schedule.terminal_input: zero); it costs time and changes nothing",
+                      stacklevel=2)
 
     device = cond_latents.device
     dtype = next(model.parameters()).dtype
