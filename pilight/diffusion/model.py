@@ -33,10 +33,13 @@ class DomainDiffusion(nn.Module):
     changes it in place on the installed processors, so a later V = 1 call (one domain)
     does not switch cross-batch attention off for good.  Without cross-batch processors
     (the ablation) ``num_views`` only validates the batch layout.
+
+    ``terminal_timestep`` (schedule.terminal_input: zero, set to T-1): items at that timestep
+    read a zero latent instead of x_t; None (the paper) = every item reads x_t.
     """
 
     def __init__(self, unet: nn.Module, conditioning: nn.Module, num_domains: int, cond_channels: int,
-                 num_views: int | None = None, cross_batch: bool | None = None):
+                 num_views: int | None = None, cross_batch: bool | None = None, terminal_timestep: int | None = None):
         super().__init__()
         cfg = unet.config
         if cfg.in_channels != cfg.out_channels + cond_channels:
@@ -61,8 +64,8 @@ class DomainDiffusion(nn.Module):
             set_cross_batch_attention(unet, max(2, num_views) if cross_batch else None)
         self.set_views(num_views)
         # Items at this timestep read a zero latent instead of x_t (schedule.terminal_input: zero);
-        # None = they read x_t. Set by the builder; both training and sampling go through forward().
-        self.terminal_timestep: int | None = None
+        # None = they read x_t. Both training and sampling go through forward().
+        self.terminal_timestep = terminal_timestep
 
     def _cross_batch_processors(self) -> list[CrossBatchAttnProcessor]:
         return [p for p in self.unet.attn_processors.values() if isinstance(p, CrossBatchAttnProcessor)]

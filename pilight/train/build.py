@@ -83,10 +83,10 @@ def build_stack(p, *, num_domains: int, num_views: int | None = None, cond_chann
     if conditioning.dim != dim:
         raise ModelError(f"conditioning {conditioning.name} gives {conditioning.dim}-d states but the UNet's cross_attention_dim is {dim}")
     set_cross_batch_attention(unet, num_views if p.cross_batch_attention else None)
-    model = DomainDiffusion(unet, conditioning, num_domains=num_domains, cond_channels=cond)
     s = p.schedule
+    model = DomainDiffusion(unet, conditioning, num_domains=num_domains, cond_channels=cond,
+                            terminal_timestep=s.num_train_timesteps - 1 if s.terminal_input == "zero" else None)
     scheduler = make_train_scheduler(s.num_train_timesteps, s.beta_schedule, s.rescale_zero_snr, s.timestep_spacing)
-    model.terminal_timestep = s.num_train_timesteps - 1 if s.terminal_input == "zero" else None
     return Stack(codec, model, scheduler, num_views, p.cross_batch_attention)
 
 
