@@ -198,9 +198,8 @@ DOMAINS = ("albedo", "normal", "roughness", "metallic")  # stage 1's outputs, in
 
 
 class CodecParams(_Section):
-    kind: Literal["pixel", "haar", "vae"] = Field("pixel", description="pixel = lossless pixel-unshuffle (no weights); "
-                                                  "haar = the same with an orthonormal Haar transform per cell; vae = AutoencoderKL")
-    factor: int = Field(4, ge=1, description="pixel / haar codec downsampling factor")
+    kind: Literal["pixel", "vae"] = Field("pixel", description="pixel = lossless pixel-unshuffle (no weights); vae = AutoencoderKL")
+    factor: int = Field(4, ge=1, description="pixel codec downsampling factor")
     path: str | None = Field(None, description="local AutoencoderKL folder (e.g. Stable Diffusion 2's vae/) for kind: vae")
 
     @model_validator(mode="after")
@@ -272,8 +271,6 @@ class TrainParams(_Section):
     cond_dropout: float = Field(0.1, ge=0.0, le=1.0, description="drop the condition so CFG works")
     terminal_fraction: float = Field(0.0, ge=0.0, le=1.0, description="share of samples trained at t = T-1, "
                                      "the timestep single-step inference uses (the rest uniform)")
-    hflip: float = Field(0.0, ge=0.0, le=1.0, description="share of training samples mirrored left-right "
-                         "(normals' x negated): an exact render of the mirrored scene (pilight.data.augment)")
     ema_decay: float = Field(0.0, ge=0.0, lt=1.0, description="exponential moving average of the weights, "
                              "saved as the model (diffusers EMAModel, warmup (1+n)/(10+n)); 0 = off")
     checkpoint_every: int = Field(200, ge=1)

@@ -2,7 +2,7 @@
 v-prediction schedule, the domain-labelled denoiser and its sampler (paper Sec. Stage 1)."""
 
 from .attention import CrossBatchAttnProcessor, set_cross_batch_attention
-from .codec import Codec, HaarCodec, PixelCodec, VaeCodec, make_codec
+from .codec import Codec, PixelCodec, VaeCodec, make_codec
 from .conditioning import ClipImageEmbedding, LearnedEmbedding, make_conditioning, null_like
 from .model import DomainDiffusion
 from .sampler import sample
@@ -10,7 +10,7 @@ from .schedule import add_noise, make_train_scheduler, v_target, v_to_eps, v_to_
 from .unet import PAPER_UNET_SPEC, UNetSpec, build_unet, load_pretrained_unet
 
 __all__ = [
-    "CrossBatchAttnProcessor", "set_cross_batch_attention", "Codec", "HaarCodec", "PixelCodec", "VaeCodec", "make_codec",
+    "CrossBatchAttnProcessor", "set_cross_batch_attention", "Codec", "PixelCodec", "VaeCodec", "make_codec",
     "ClipImageEmbedding", "LearnedEmbedding", "make_conditioning", "null_like", "DomainDiffusion", "sample",
     "add_noise", "make_train_scheduler", "v_target", "v_to_eps", "v_to_x0", "PAPER_UNET_SPEC", "UNetSpec",
     "build_unet", "load_pretrained_unet",

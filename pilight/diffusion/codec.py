@@ -5,7 +5,6 @@ Two implementations of one interface (``name``, ``factor``, ``latent_channels``,
 ``encode(x)``, ``decode(z, checkpoint=False)``):
 
 * ``PixelCodec`` -- lossless pixel-unshuffle, for training from scratch on CPU.
-* ``HaarCodec``  -- the same, then an orthonormal Haar transform inside each cell (ours).
 * ``VaeCodec``   -- a frozen diffusers ``AutoencoderKL`` (Stable Diffusion 2's VAE in
   the paper: latents of 4 x H/8 x W/8), loaded from a local directory only.
 """
@@ -55,51 +54,6 @@ class PixelCodec(nn.Module):
     def decode(self, z: torch.Tensor, checkpoint: bool = False) -> torch.Tensor:
         # ``checkpoint`` is accepted for interface parity; pixel_shuffle stores nothing worth freeing.
         return F.pixel_shuffle(z, self.factor)
-
-
-def haar_matrix(n: int) -> torch.Tensor:
-    """The orthonormal 1-D Haar transform of length n (a power of 2), rows = basis vectors:
-    H_1 = [1]; H_2k = [H_k (x) [1, 1]; I_k (x) [1, -1]] / sqrt(2)."""
-    if n < 1 or n & (n - 1):
-        raise ValueError(f"the haar codec needs a power-of-2 factor, got {n}")
-    h = torch.ones(1, 1, dtype=torch.float64)
-    while h.shape[0] < n:
-        k = h.shape[0]
-        h = torch.cat([torch.kron(h, torch.tensor([[1.0, 1.0]], dtype=torch.float64)),
-                       torch.kron(torch.eye(k, dtype=torch.float64), torch.tensor([[1.0, -1.0]], dtype=torch.float64))]) / 2 ** 0.5
-    return h
-
-
-class HaarCodec(PixelCodec):
-    """Pixel-unshuffle, then an orthonormal 2-D Haar transform inside each f x f cell (ours).
-
-    Still exact and parameter-free, and orthonormal, so white noise stays white and the diffusion
-    maths is unchanged. What changes is what one latent channel means: one of 3 colour means per
-    cell and 3(f^2 - 1) detail coefficients instead of 3 f^2 pixels. A smooth map (a shading
-    change, a constant roughness) is then a few nonzero channels, and an error in one channel is
-    a smooth or an edge-shaped pattern, not the independent per-pixel noise of a pixel channel
-    (the 4 x 4 cell pattern seen in pixel-codec relighting)."""
-
-    def __init__(self, factor: int):
-        super().__init__(factor)
-        f = self.factor
-        self.register_buffer("basis", torch.kron(haar_matrix(f), haar_matrix(f)).float(), persistent=False)
-        self.name = f"haar-{f}"
-
-    def _transform(self, z: torch.Tensor, inverse: bool) -> torch.Tensor:
-        # fp32 with autocast off, like the VAE decode: a bf16 basis would make the codec lossy.
-        b, _, h, w = z.shape
-        with torch.autocast(device_type=z.device.type, enabled=False):
-            m = self.basis.to(z.device)
-            z = torch.einsum("kl,bclhw->bckhw", m.T if inverse else m, z.float().reshape(b, 3, -1, h, w))
-        return z.reshape(b, -1, h, w)
-
-    def encode(self, x: torch.Tensor) -> torch.Tensor:
-        # pixel-unshuffle's channel c * f^2 + (i * f + j) is pixel (i, j) of colour c's cell
-        return self._transform(super().encode(x), inverse=False)
-
-    def decode(self, z: torch.Tensor, checkpoint: bool = False) -> torch.Tensor:
-        return super().decode(self._transform(z, inverse=True))
 
 
 class VaeCodec(nn.Module):
@@ -160,14 +114,11 @@ class VaeCodec(nn.Module):
 
 
 def make_codec(kind: str, factor: int = 4, path: str | None = None) -> PixelCodec | VaeCodec:
-    """``kind`` = "pixel" (PixelCodec(factor)), "haar" (HaarCodec(factor)) or "vae" (VaeCodec(path);
-    ``factor`` is then the VAE's)."""
+    """``kind`` = "pixel" (PixelCodec(factor)) or "vae" (VaeCodec(path); ``factor`` is then the VAE's)."""
     if kind == "pixel":
         return PixelCodec(factor)
-    if kind == "haar":
-        return HaarCodec(factor)
     if kind == "vae":
         if not path:
             raise ValueError("codec kind 'vae' needs a local VAE directory: set params key `codec.path`")
         return VaeCodec(path)
-    raise ValueError(f"unknown codec kind {kind!r}; expected 'pixel', 'haar' or 'vae'")
+    raise ValueError(f"unknown codec kind {kind!r}; expected 'pixel' or 'vae'")

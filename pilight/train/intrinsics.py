@@ -16,7 +16,6 @@ import torch
 import torch.nn.functional as F
 
 from pilight.data import schema
-from pilight.data.augment import hflip
 from pilight.data.shards import intrinsics_dataset, make_loader
 from pilight.diffusion.sampler import sample
 from pilight.diffusion.schedule import sample_timesteps, v_target
@@ -98,8 +97,6 @@ class IntrinsicsTask:
     def loss(self, batch: dict, generator: torch.Generator) -> tuple[torch.Tensor, dict[str, float]]:
         s, V = self.stack, len(DOMAINS)
         dev = next(s.model.parameters()).device
-        if self.p.train.hflip > 0:  # drawn first and only when on, so hflip 0 keeps the old random stream
-            batch = hflip(batch, torch.rand(batch["image"].shape[0], generator=generator) < self.p.train.hflip)
         image = schema.to_model("image", batch["image"]).to(dev)
         B = image.shape[0]
         with torch.no_grad():

@@ -73,7 +73,6 @@ import torch
 import torch.nn.functional as F
 
 from pilight.data import schema
-from pilight.data.augment import hflip
 from pilight.data.pairs import read_pairs
 from pilight.data.predictions import read_predictions
 from pilight.data.schema import DataError
@@ -324,16 +323,11 @@ class RelightTask:
         s, V, p = self.stack, self.V, self.p
         dev = next(s.model.parameters()).device
         B = batch["image_a"].shape[0]
-        # Draw order (fixed, for exact resume): mirror (only when on, so hflip 0 keeps the old random
-        # stream), t, conditions source, CFG drop, noise.
-        flip = torch.rand(B, generator=generator) < p.train.hflip if p.train.hflip > 0 else None
+        # Draw order (fixed, for exact resume): t, conditions source, CFG drop, noise.
         t = sample_timesteps(B, s.scheduler.config.num_train_timesteps, p.train.terminal_fraction, generator)
         use_pred = torch.rand(B, generator=generator) < self.pred_share
         drop = torch.rand(B, generator=generator) < p.train.cond_dropout  # CFG needs an unconditional model
-        intr = choose_intrinsics(batch, use_pred, self.preds)
-        if flip is not None:  # after the prediction lookup (by key): targets and conditions mirror together
-            batch, intr = hflip(batch, flip), hflip(intr, flip)
-        intr = {k: v.to(dev) for k, v in intr.items()}
+        intr = {k: v.to(dev) for k, v in choose_intrinsics(batch, use_pred, self.preds).items()}
         mask = batch["mask"].to(dev)
         with torch.no_grad():
             maps = condition_images(batch["image_a"].to(dev), intr, batch["ball_b"].to(dev), mask, self.with_d_calc)
@@ -416,7 +410,7 @@ class RelightTask:
 
 def _latent_channels(p: RelightParams) -> int:
     """The codec's latent width without building the UNet (pixel: 3 f^2; VAE: from its config)."""
-    if p.codec.kind in ("pixel", "haar"):
+    if p.codec.kind == "pixel":
         return 3 * p.codec.factor ** 2
     try:
         return int(json.loads((Path(p.codec.path) / "config.json").read_text()).get("latent_channels", 4))

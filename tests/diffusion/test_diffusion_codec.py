@@ -4,7 +4,7 @@ import pytest
 import torch
 from diffusers import AutoencoderKL
 
-from pilight.diffusion.codec import HaarCodec, PixelCodec, VaeCodec, haar_matrix, make_codec
+from pilight.diffusion.codec import PixelCodec, VaeCodec, make_codec
 
 
 def test_pixel_codec_round_trip_exact():
@@ -21,40 +21,8 @@ def test_pixel_codec_rejects_indivisible_size():
         PixelCodec(4).encode(torch.zeros(1, 3, 18, 24))
 
 
-@pytest.mark.parametrize("factor", [1, 2, 4, 8])
-def test_haar_codec_is_orthonormal_and_lossless(factor):
-    h = haar_matrix(factor)
-    torch.testing.assert_close(h @ h.T, torch.eye(factor, dtype=torch.float64), rtol=0, atol=1e-12)
-    codec = HaarCodec(factor)
-    x = torch.rand(2, 3, 16, 24) * 2 - 1
-    z = codec.encode(x)
-    assert z.shape == (2, 3 * factor ** 2, 16 // factor, 24 // factor) and codec.latent_channels == 3 * factor ** 2
-    torch.testing.assert_close(codec.decode(z), x, rtol=0, atol=1e-6)
-    # Orthonormal: energy is kept, so unit Gaussian noise in the latent is unit Gaussian in pixels.
-    torch.testing.assert_close(z.square().sum(), x.square().sum(), rtol=1e-5, atol=0)
-
-
-def test_haar_codec_puts_a_smooth_map_into_the_cell_means():
-    """A constant image is 3 nonzero channels (one mean per colour, f times the value), every detail 0."""
-    z = HaarCodec(4).encode(torch.full((1, 3, 8, 8), 0.25))
-    means = z.reshape(1, 3, 16, 2, 2)[:, :, 0]
-    torch.testing.assert_close(means, torch.full_like(means, 1.0))
-    assert z.reshape(1, 3, 16, 2, 2)[:, :, 1:].abs().max() < 1e-6
-
-
-def test_haar_codec_stays_fp32_under_autocast():
-    codec, x = HaarCodec(4), torch.rand(1, 3, 8, 8)
-    with torch.autocast("cpu", dtype=torch.bfloat16):
-        z = codec.encode(x)
-        assert z.dtype == torch.float32
-        torch.testing.assert_close(codec.decode(z), x, rtol=0, atol=1e-6)
-
-
 def test_make_codec():
     assert make_codec("pixel", factor=2).name == "pixel-unshuffle-2"
-    assert make_codec("haar", factor=4).name == "haar-4"
-    with pytest.raises(ValueError, match="power-of-2 factor, got 3"):
-        make_codec("haar", factor=3)
     with pytest.raises(ValueError, match="codec.path"):
         make_codec("vae")
     with pytest.raises(ValueError, match="unknown codec"):

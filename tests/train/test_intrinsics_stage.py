@@ -8,7 +8,6 @@ from pathlib import Path
 import pytest
 import torch
 
-from pilight.data.augment import hflip
 from pilight.data.shards import intrinsics_dataset, make_loader
 from pilight.params import DOMAINS, IntrinsicsParams, SamplingParams
 from pilight.train.intrinsics import IntrinsicsTask, domain_targets, latent_mask, masked_latent_mse, targets_to_maps
@@ -146,19 +145,3 @@ def test_empty_shard_list_is_an_error(tmp_path):
     r = _run("train_intrinsics.py", "--params", _params(tmp_path), "--shards", tmp_path / "shards",
              "--out", tmp_path / "model", "--checkpoints", tmp_path / "ckpt", "--live", tmp_path / "live")
     assert r.returncode == 1 and "train split has no shards" in r.stderr, r.stderr
-
-
-def test_mirror_augmentation_trains_on_the_mirrored_sample(shards):
-    """hflip 1 is the loss of the mirrored batch (one extra draw first); hflip 0 draws nothing extra."""
-    tasks = {}
-    for share in (0.0, 1.0):
-        torch.manual_seed(0)
-        tasks[share] = IntrinsicsTask(IntrinsicsParams.model_validate({**TINY, "train": {**TINY["train"], "hflip": share}}),
-                                      shards, seed=0)
-    b = _batch(shards)
-    g_off = torch.Generator().manual_seed(5)
-    torch.rand(2, generator=g_off)  # the mirror draw
-    on, _ = tasks[1.0].loss(b, torch.Generator().manual_seed(5))
-    mirrored, _ = tasks[0.0].loss(hflip(b, torch.ones(2, dtype=torch.bool)), g_off)
-    plain, _ = tasks[0.0].loss(b, torch.Generator().manual_seed(5))
-    assert torch.equal(on, mirrored) and not torch.isclose(on, plain)
