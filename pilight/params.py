@@ -317,9 +317,13 @@ class RelightParams(ModelParams):
     conditions: Literal["gt", "pred", "mix"] = Field("mix", description="intrinsics given to the model while training")
     pred_probability: float = Field(0.5, ge=0.0, le=1.0, description="share of stage-1 predictions when conditions: mix")
     ds_ball: Literal["gray", "lambertian"] = Field("gray", description="ball unfolded for D_calculated (paper: gray)")
-    relit_target: Literal["image", "residual"] = Field(
-        "image", description="image = the paper's relit branch; residual = its latent minus the input's latent "
-                             "(so 'copy the input' is the zero prediction)")
+    relit_target: Literal["image", "residual", "gain"] = Field(
+        "image", description="image = the paper's relit branch; residual = its latent minus the input's latent; "
+                             "gain = the log ratio of relit to input display values (both: 'copy the input' is "
+                             "the zero prediction)")
+    relit_resolution: Literal["full", "cell"] = Field(
+        "full", description="full = a value per pixel (the paper); cell = the relit branch's change is one value "
+                            "per codec cell, bilinearly interpolated (smooth by construction; needs residual or gain)")
     d_calc_condition: tuple[Literal["relit", "diffuse", "specular"], ...] = Field(
         (), description="branches that also get D_calc (Lambertian lookup of the target ball with the conditioning "
                         "normals) as a condition map; () = the paper")
@@ -333,6 +337,9 @@ class RelightParams(ModelParams):
 
     @model_validator(mode="after")
     def _dinov2(self) -> "RelightParams":
+        if self.relit_resolution == "cell" and self.relit_target == "image":
+            raise ValueError("relit_resolution 'cell' smooths the relit branch's CHANGE of the input, so it needs "
+                             "relit_target 'residual' or 'gain', not 'image'")
         if self.rec_features == "dinov2" and not self.dinov2_path:
             raise ValueError("rec_features is 'dinov2' but dinov2_path is not set (a local DINOv2 folder)")
         if self.dinov2_path and not Path(self.dinov2_path).is_dir():

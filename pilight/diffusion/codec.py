@@ -30,6 +30,19 @@ class Codec(Protocol):
     def decode(self, z: torch.Tensor, checkpoint: bool = False) -> torch.Tensor: ...
 
 
+def cell_mean(x: torch.Tensor, cell: int) -> torch.Tensor:
+    """Each cell x cell block replaced by its mean (a target that is one value per codec cell)."""
+    return F.interpolate(F.avg_pool2d(x, cell), scale_factor=cell, mode="nearest") if cell > 1 else x
+
+
+def cell_smooth(x: torch.Tensor, cell: int) -> torch.Tensor:
+    """Cell means, bilinearly interpolated back to pixels: smooth by construction, no structure
+    inside a cell (what the targets of ``cell_mean`` decode to)."""
+    if cell == 1:
+        return x
+    return F.interpolate(F.avg_pool2d(x, cell), scale_factor=cell, mode="bilinear", align_corners=False)
+
+
 def _check_divisible(x: torch.Tensor, factor: int) -> None:
     h, w = x.shape[-2:]
     if h % factor or w % factor:

@@ -50,6 +50,24 @@ decoded (physics terms, inference). A relit image mostly repeats its input, so "
 then the zero prediction and a model trained for a few hundred CPU steps starts from it instead of
 having to learn the identity through the UNet. The D and S branches are unchanged.
 
+`relit_target: gain` (ours): the relit branch denoises the log ratio of display values,
+G = log((u_b + GAIN_EPS) / (u_a + GAIN_EPS)) / GAIN_SCALE with u = (y + 1) / 2 of the schema's tone
+map, and decodes to u_relit = (u_a + GAIN_EPS) exp(GAIN_SCALE G) - GAIN_EPS. "Copy the input" is again
+the zero prediction, but the input's texture now enters multiplicatively: where only shading
+changes (u ~ (A D)^(1/2.2) below the Reinhard knee), G is the shading ratio (D_b / D_a)^(1/2.2), free
+of texture. The residual target z(I_b) - z(I_a) is that ratio TIMES the input's texture, which a
+small UNet reproduces with errors at every pixel of its 4x4 pixel-unshuffle cells, and those
+errors are what SSIM punishes (README, "Where the SSIM deficit lives"). GAIN_EPS keeps black
+pixels (background, deep shadow) finite: there G is bounded by log((1 + eps) / eps).
+
+`relit_resolution: cell` (ours; `full` is the paper's per-pixel output): the relit branch's change
+(its residual or G) is one value per codec cell (the pixel-unshuffle factor, or the VAE's 8),
+bilinearly interpolated to pixels. Targets are the cell means, repeated over the cell; the decoded
+change is averaged over each cell, then interpolated. Why: SSIM barely notices a smooth additive
+or multiplicative error, but a small UNet's per-pixel errors inside its 4x4 cells read as noise
+over every flat region, and a smooth change cannot add any. The cost: no change sharper than a
+cell (moving shadow edges blur over 4 pixels). Needs relit_target residual or gain.
+
 `d_calc_condition` (ours, default () = the paper): the named branches also read D_calc, the
 Lambertian lookup of the target (gray) ball with the CONDITIONING normals and metallic, as one more
 condition map. It holds no information the branch lacks (N and L are there), but reading the ball
@@ -77,6 +95,7 @@ from pilight.data.pairs import read_pairs
 from pilight.data.predictions import read_predictions
 from pilight.data.schema import DataError
 from pilight.data.shards import make_loader, relight_dataset
+from pilight.diffusion.codec import cell_mean, cell_smooth
 from pilight.diffusion.sampler import sample
 from pilight.diffusion.schedule import sample_timesteps, v_target, v_to_x0
 from pilight.params import RelightParams, SamplingParams
@@ -95,6 +114,9 @@ PHYS_HDR_MAX = 64.0
 Y_PHYS = float(schema.hdr_to_model(np.float64(PHYS_HDR_MAX)))
 TONEMAP_EPS = 1e-6
 PHYSICS_SPACE = "tonemapped"
+GAIN_EPS = 0.05  # display-value floor of relit_target gain (u in [0, 1]; mid-gray 0.18 linear is u ~ 0.42)
+GAIN_SCALE = 2.0  # G = log ratio / GAIN_SCALE: |G| <= log(1.05 / 0.05) / 2 = 1.52, the range of the other targets
+GAIN_MAX = float(np.log((1.0 + GAIN_EPS) / GAIN_EPS) / GAIN_SCALE)
 
 
 def branch_layout(decomposition: bool, d_calc_branches: tuple[str, ...] = ()) -> dict[str, tuple[str, ...]]:
@@ -109,6 +131,19 @@ def branch_layout(decomposition: bool, d_calc_branches: tuple[str, ...] = ()) ->
 def cond_width(decomposition: bool, d_calc_branches: tuple[str, ...] = ()) -> int:
     """Condition maps per item after padding: the widest branch (5, or 6 with D_calc), or 7 (8) for the ablation."""
     return max(len(m) for m in branch_layout(decomposition, d_calc_branches).values())
+
+
+def gain_encode(y_b: torch.Tensor, y_a: torch.Tensor) -> torch.Tensor:
+    """relit_target gain: model-space target y_b and input y_a ([-1, 1)) -> G (module docstring)."""
+    u_b, u_a = (y_b.float() + 1) / 2, (y_a.float() + 1) / 2
+    return torch.log((u_b.clamp_min(0) + GAIN_EPS) / (u_a.clamp_min(0) + GAIN_EPS)) / GAIN_SCALE
+
+
+def gain_decode(g: torch.Tensor, y_a: torch.Tensor) -> torch.Tensor:
+    """Inverse of gain_encode: G and the input y_a -> the relit image in model space [-1, 1)."""
+    u_a = ((y_a.float() + 1) / 2).clamp_min(0)
+    u = (u_a + GAIN_EPS) * torch.exp(GAIN_SCALE * g.float().clamp(-GAIN_MAX, GAIN_MAX)) - GAIN_EPS
+    return 2 * u.clamp(0.0, 1.0 - 1e-6) - 1
 
 
 def tonemap(x: torch.Tensor) -> torch.Tensor:
@@ -278,6 +313,7 @@ class RelightTask:
 
     def describe(self) -> dict[str, Any]:
         return {**self.stack.describe(), "rec_features": self.extractor.name, "relit_target": self.p.relit_target,
+                "relit_resolution": self.p.relit_resolution,
                 "physics_space": self.physics_space,
                 "branches": list(self.branches), "conditions": self.p.conditions,
                 "condition_maps": {b: list(m) for b, m in self.layout.items()},
@@ -319,6 +355,29 @@ class RelightTask:
         offset[:, r] = per_item[:, r, i * lc:(i + 1) * lc]
         return offset.flatten(0, 1)
 
+    def _relit_target(self, y_b: torch.Tensor, y_a: torch.Tensor) -> torch.Tensor:
+        """The relit branch's target image (B, 3, H, W) before encoding: y_b, G (gain), cell means."""
+        p, cell = self.p, self.stack.codec.factor
+        if p.relit_target == "gain":
+            g = gain_encode(y_b, y_a)
+            return cell_mean(g, cell) if p.relit_resolution == "cell" else g
+        if p.relit_resolution == "cell":  # residual: the latent offset z(y_a) is subtracted after encoding
+            return y_a + cell_mean(y_b - y_a, cell)
+        return y_b
+
+    def _relit_from_output(self, y: torch.Tensor, y_a: torch.Tensor) -> torch.Tensor:
+        """Decoded outputs (B, V, 3, H, W) -> the relit branch as an image (gain decoded, cells smoothed)."""
+        p, cell = self.p, self.stack.codec.factor
+        r = self.branches.index("relit")
+        out = y[:, r]
+        if p.relit_target == "gain":
+            out = gain_decode(cell_smooth(out, cell) if p.relit_resolution == "cell" else out, y_a)
+        elif p.relit_resolution == "cell":
+            out = y_a + cell_smooth(out - y_a, cell)
+        else:
+            return y
+        return torch.cat([y[:, :r], out[:, None], y[:, r + 1:]], dim=1)
+
     def loss(self, batch: dict, generator: torch.Generator) -> tuple[torch.Tensor, dict[str, float]]:
         s, V, p = self.stack, self.V, self.p
         dev = next(s.model.parameters()).device
@@ -332,7 +391,10 @@ class RelightTask:
         with torch.no_grad():
             maps = condition_images(batch["image_a"].to(dev), intr, batch["ball_b"].to(dev), mask, self.with_d_calc)
             z_cond = encode_conditions(s.codec, maps, self.layout, self.width)
-            z0 = s.codec.encode(branch_targets(batch, self.branches).flatten(0, 1).to(dev).float())
+            targets = branch_targets(batch, self.branches).to(dev).float()
+            r = self.branches.index("relit")
+            targets[:, r] = self._relit_target(targets[:, r], maps["image"])
+            z0 = s.codec.encode(targets.flatten(0, 1))
             offset = self._input_offset(z_cond)
             if offset is not None:
                 z0 = z0 - offset
@@ -354,7 +416,7 @@ class RelightTask:
         x0 = v_to_x0(x_t.float(), v, alphas, tv)
         if offset is not None:
             x0 = x0 + offset
-        y = s.codec.decode(x0, checkpoint=True).float().unflatten(0, (B, V))
+        y = self._relit_from_output(s.codec.decode(x0, checkpoint=True).float().unflatten(0, (B, V)), maps["image"])
         d_calc = None
         if p.decomposition:
             with torch.no_grad():
@@ -389,7 +451,7 @@ class RelightTask:
         offset = self._input_offset(z_cond)
         if offset is not None:
             z0 = z0 + offset
-        y = s.codec.decode(z0).float().unflatten(0, (B, V))
+        y = self._relit_from_output(s.codec.decode(z0).float().unflatten(0, (B, V)), maps["image"])
         # Clamp: model_to_hdr of the top code rounds just above the float16 maximum (inf in an EXR).
         return {b: schema.from_model("image", y[:, i]).clamp(0, schema.HDR_MAX) for i, b in enumerate(self.branches)}
 

@@ -249,18 +249,20 @@ def test_empty_shard_list_is_an_error(tmp_path):
     assert r.returncode == 1 and "train split has no shards" in r.stderr, r.stderr
 
 
-@pytest.mark.parametrize("target", ["image", "residual"])
-def test_residual_target_makes_the_zero_prediction_copy_the_input(shards, monkeypatch, target):
-    """relit_target residual: x0 = 0 decodes to the input image on the relit branch, and D, S are untouched."""
+@pytest.mark.parametrize("target,resolution", [("image", "full"), ("residual", "full"), ("gain", "full"),
+                                               ("residual", "cell"), ("gain", "cell")])
+def test_residual_target_makes_the_zero_prediction_copy_the_input(shards, monkeypatch, target, resolution):
+    """relit_target residual or gain: x0 = 0 decodes to the input image on the relit branch, and D, S are untouched."""
     from pilight.data import schema
 
-    task = RelightTask(_p(relit_target=target, schedule={"rescale_zero_snr": True}), shards, seed=0)  # x_T is pure noise
+    task = RelightTask(_p(relit_target=target, relit_resolution=resolution, schedule={"rescale_zero_snr": True}),
+                       shards, seed=0)  # x_T is pure noise
     monkeypatch.setattr(task.stack.model, "forward", lambda x, *a, **k: torch.zeros_like(x))  # v = 0 -> x0 = -v = 0
     b = _batch(shards)
     out = task.predict(b, SamplingParams(mode="single_step", cfg_scale=1.5), torch.Generator().manual_seed(0))
     zero = schema.from_model("image", torch.zeros(1))
     copy = schema.from_model("image", schema.to_model("image", b["image_a"])).clamp(0, schema.HDR_MAX)
-    if target == "residual":
+    if target != "image":
         torch.testing.assert_close(out["relit"], copy, rtol=1e-4, atol=1e-5)
     else:
         assert torch.allclose(out["relit"], zero.expand_as(out["relit"]))
@@ -269,3 +271,51 @@ def test_residual_target_makes_the_zero_prediction_copy_the_input(shards, monkey
     loss, _ = task.loss(_batch(shards), torch.Generator().manual_seed(0))
     loss.backward()
     assert torch.isfinite(loss)
+
+
+@pytest.mark.parametrize("target", ["residual", "gain"])
+def test_cell_resolution_ignores_everything_inside_a_cell(shards, monkeypatch, target):
+    """relit_resolution cell: a model output with zero mean in every codec cell changes nothing (the relit
+    image is the input), while the same output at full resolution does; the training targets are cell-constant."""
+    from pilight.data import schema
+    from pilight.diffusion.codec import cell_mean
+
+    b = _batch(shards)
+    copy = schema.from_model("image", schema.to_model("image", b["image_a"])).clamp(0, schema.HDR_MAX)
+    out = {}
+    for resolution in ("cell", "full"):
+        task = RelightTask(_p(relit_target=target, relit_resolution=resolution, schedule={"rescale_zero_snr": True}),
+                           shards, seed=0)
+        f = task.stack.codec.factor
+
+        def v_zero_cell_mean(x, *a, **k):  # x0 = -v at t = T-1; in pixels: +-0.3 alternating, mean 0 per cell
+            h, w = x.shape[-2] * f, x.shape[-1] * f
+            checker = 0.3 * (1 - 2 * ((torch.arange(h)[:, None] + torch.arange(w)[None]) % 2)).float()
+            return -task.stack.codec.encode(checker.expand(x.shape[0], 3, h, w))
+        monkeypatch.setattr(task.stack.model, "forward", v_zero_cell_mean)
+        out[resolution] = task.predict(b, SamplingParams(mode="single_step"), torch.Generator().manual_seed(0))["relit"]
+        monkeypatch.undo()
+        y_a, y_b = schema.to_model("image", b["image_a"]), schema.to_model("image", b["image_b"])
+        change = task._relit_target(y_b, y_a) - (y_a if target == "residual" else 0)
+        if resolution == "cell":
+            torch.testing.assert_close(change, cell_mean(change, f))
+    torch.testing.assert_close(out["cell"], copy, rtol=1e-4, atol=1e-5)
+    assert (out["full"] - copy).abs().max() > 1e-2
+
+
+def test_gain_round_trip_and_bounds():
+    """gain_decode(gain_encode(y_b, y_a), y_a) = y_b over the whole model range, and G stays within GAIN_MAX."""
+    from pilight.train.relight import GAIN_MAX, gain_decode, gain_encode
+
+    g = torch.Generator().manual_seed(0)
+    y_a, y_b = torch.rand(2, 4, 3, 16, 16, generator=g) * 1.999 - 1
+    y_b[0, 0] = -1.0  # black targets and inputs: the bounds of G
+    y_a[1, 0] = -1.0
+    G = gain_encode(y_b, y_a)
+    assert G.abs().max() <= GAIN_MAX + 1e-6
+    torch.testing.assert_close(gain_decode(G, y_a), y_b, atol=1e-5, rtol=0)
+
+
+def test_cell_resolution_needs_a_change_target():
+    with pytest.raises(ValueError, match="relit_resolution 'cell' .* needs relit_target 'residual' or 'gain'"):
+        _p(relit_target="image", relit_resolution="cell")
