@@ -212,7 +212,8 @@ def test_train_relight_evaluate_scripts(shards, preds, tmp_path):
     index = json.loads((relit / "index.json").read_text())
     assert index["conditions"] == "pred" and index["splits"]["test"]["samples"] == 8
     timing = json.loads((tmp_path / "relight.json").read_text())
-    assert timing["flip_check_d_pred"]["pairs"] == 4 and "seconds_per_pair" in timing
+    flip = timing["flip_check_d_pred"]
+    assert flip["pairs"] == 8 and flip["conditions"] == "gt" and "seconds_per_pair" in timing
     r = _run("evaluate.py", "--params", params, "--shards", shards, "--pred", preds,
              "--metrics", tmp_path / "eval.json", "--reports", tmp_path / "reports")
     assert r.returncode == 0, r.stderr
@@ -319,3 +320,31 @@ def test_gain_round_trip_and_bounds():
 def test_cell_resolution_needs_a_change_target():
     with pytest.raises(ValueError, match="relit_resolution 'cell' .* needs relit_target 'residual' or 'gain'"):
         _p(relit_target="image", relit_resolution="cell")
+
+
+def test_flip_check_tells_a_shading_that_follows_n_from_one_that_does_not(shards):
+    """stages/relight.py flip_check: D_pred = the Lambertian lookup of the conditioning normals flips sign in
+    every pair with a visible side; a D_pred that ignores N flips in none."""
+    import importlib.util
+
+    from pilight.train.relight import diffuse_calculated
+
+    spec = importlib.util.spec_from_file_location("relight_stage", Path(__file__).parents[2] / "stages" / "relight.py")
+    stage = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(stage)
+    batches = list(make_loader(relight_dataset(shards, "test", shuffle=False), 4))
+
+    class Stub:
+        def __init__(self, follows_n):
+            self.follows_n = follows_n
+
+        def predict(self, batch, sp, generator, intr):
+            n = intr["normal"] if self.follows_n else batch["normal"]
+            return {"diffuse": diffuse_calculated(batch["ball_b"], n, batch["mask"], torch.zeros_like(batch["metallic"]))}
+
+    # the tiny scenes' shading is nearly symmetric (|asymmetry| <= 0.09), hence the low threshold
+    follows = stage.flip_check(Stub(True), batches, SamplingParams(), 0, visible_above=0.01)
+    ignores = stage.flip_check(Stub(False), batches, SamplingParams(), 0, visible_above=0.01)
+    assert follows["pairs"] == ignores["pairs"] == 8 and follows["pairs_considered"] > 0
+    assert follows["sign_flipped_fraction"] > 0.5 and follows["moved_toward_flip_fraction"] == 1.0
+    assert ignores["sign_flipped_fraction"] == 0.0 and ignores["moved_toward_flip_fraction"] == 0.0
