@@ -5,6 +5,11 @@ goes through here: EXRs, previews and sidecars, models, metrics, reports, plots 
 outputs such as shards, predictions and checkpoints are written into a temporary folder that is
 renamed). The temporary file lives in the target's folder, so the final ``os.replace`` is a rename
 on one filesystem, which is atomic.
+
+``mkstemp`` creates its file with mode 0600 whatever the umask; the result is given the mode a plain
+``open()`` would have given it (0666 less the umask), so colleagues or a web server can read the
+outputs wherever the umask allows it. An ``OSError`` (read-only folder, full disk) is re-raised with
+the final path as its filename: the temporary's name, or none at all, tells the user nothing.
 """
 
 from __future__ import annotations
@@ -17,18 +22,65 @@ from pathlib import Path
 from typing import Any
 
 
+def umask() -> int:
+    """The process umask. Read from /proc where it is shown, since ``os.umask`` can only read it by
+    setting it, which briefly changes it for every thread of the process."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    old = os.umask(0o022)
+    os.umask(old)
+    return old
+
+
+def file_mode() -> int:
+    """The mode ``open()`` gives a new file: 0666 less the umask."""
+    return 0o666 & ~umask()
+
+
+def dir_mode() -> int:
+    """The mode ``mkdir()`` gives a new folder: 0777 less the umask (``mkdtemp`` makes 0700)."""
+    return 0o777 & ~umask()
+
+
+def path_error(exc: OSError, path: str | os.PathLike, own: Callable[[str], bool] = lambda name: False) -> OSError:
+    """``exc`` as the same OSError subclass, naming ``path`` (e.g. "[Errno 28] No space left on
+    device: 'data/shards'"). Only an error that names no file, or a temporary of ours (``own``), is
+    renamed: one that names some other file (an input that could not be read) already says the right thing."""
+    if exc.filename is not None and not own(os.fspath(exc.filename)):
+        return exc
+    try:
+        if exc.errno is not None:
+            new = type(exc)(exc.errno, exc.strerror or os.strerror(exc.errno), os.fspath(path))
+        else:
+            new = type(exc)(f"{os.fspath(path)}: {exc}")
+    except TypeError:  # a subclass with a constructor of its own
+        new = OSError(exc.errno, f"{exc}", os.fspath(path))
+    return new
+
+
 def write_with(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
     """Call ``write(temporary path)``, then rename the result to ``path``; on any error the
     temporary is removed and ``path`` keeps what it held."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        os.close(fd)
         write(tmp)
+        os.chmod(tmp, file_mode())
         os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+    except BaseException as exc:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            prefix = os.path.join(os.fspath(path.parent), f".{path.name}.")
+            raise path_error(exc, path, lambda name: name.startswith(prefix)) from exc
         raise
     return path
 
