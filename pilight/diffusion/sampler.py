@@ -54,6 +54,16 @@ def sample(model, cond_latents: torch.Tensor, domain_ids: torch.Tensor, encoder_
         raise ValueError(f"unknown sampling mode {mode!r}; expected 'ddim' or 'single_step'")
     if ensemble < 1 or steps < 1:
         raise ValueError(f"ensemble and steps must be >= 1, got {ensemble} and {steps}")
+    # Cross-batch attention mixes all items of a group, so one NaN condition makes every output NaN,
+    # silently: refuse it here, naming the input and the item.
+    _check_finite(cond_latents, "cond_latents")
+    _check_finite(encoder_hidden_states, "encoder_hidden_states")
+    if null_hidden_states is not None:
+        _check_finite(null_hidden_states, "null_hidden_states")
+    if noise is not None:
+        _check_finite(noise, "noise")
+    if not torch.isfinite(torch.as_tensor(cfg_scale)):
+        raise ValueError(f"cfg_scale must be finite, got {cfg_scale}")
 
     if mode == "single_step" and ensemble > 1 and getattr(model, "terminal_timestep", None) is not None:
         warnings.warn(f"ensemble={ensemble} with single-step sampling repeats one prediction: the model reads 0, "
@@ -111,3 +121,11 @@ def sample(model, cond_latents: torch.Tensor, domain_ids: torch.Tensor, encoder_
     finally:
         model.set_views(previous_views)  # leave the training-time grouping as it was
     return x0.view(ensemble, n, *x0.shape[1:]).mean(0)
+
+
+def _check_finite(x: torch.Tensor, name: str) -> None:
+    bad = ~torch.isfinite(x.flatten(1) if x.ndim > 1 else x[:, None])
+    if bool(bad.any()):
+        items = bad.any(1).nonzero().flatten().tolist()
+        raise ValueError(f"sample: {name} holds NaN/Inf in {len(items)} item(s) (first: item {items[0]} of "
+                         f"{x.shape[0]}); the condition is broken upstream (image, codec or conditioning encoder)")

@@ -53,6 +53,13 @@ def _coefficients(alphas_cumprod: torch.Tensor, t: torch.Tensor, like: torch.Ten
     """sqrt(a_t), sqrt(1 - a_t) for per-sample t (B,), shaped (B, 1, ..., 1) like ``like``."""
     if t.ndim != 1 or t.shape[0] != like.shape[0]:
         raise ValueError(f"t must have shape ({like.shape[0]},) (one timestep per sample), got {tuple(t.shape)}")
+    if t.is_floating_point() or t.is_complex() or t.dtype == torch.bool:
+        raise ValueError(f"t must hold integer timesteps, got dtype {t.dtype}")
+    # Indexing would wrap a negative t around (t = -1 read a_{T-1}) and fail opaquely past the end.
+    last = alphas_cumprod.shape[0] - 1
+    if t.numel() and (bool((t < 0).any()) or bool((t > last).any())):
+        bad = t[(t < 0) | (t > last)]
+        raise ValueError(f"timesteps must lie in [0, {last}] (T = {last + 1}), got {bad[:4].tolist()}")
     a = alphas_cumprod.to(device=like.device, dtype=torch.float64)[t.to(like.device).long()]
     a = a.clamp(0.0, 1.0)  # exact 0 at a zero-SNR terminal step; guard sqrt against rounding
     shape = (-1,) + (1,) * (like.ndim - 1)

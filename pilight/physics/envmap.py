@@ -45,8 +45,27 @@ ENV_H, ENV_W = 16, 32
 BALL_ALBEDO = 0.5
 
 
+def check_finite(x: torch.Tensor, what: str, where: torch.Tensor | None = None) -> None:
+    """ValueError naming ``what`` and the first bad element if ``x`` holds NaN or Inf (only where
+    ``where`` is true, when given).  One NaN texel or normal would otherwise spread silently
+    through bilinear lookups into every shading value it touches, with the valid flag still 1."""
+    bad = ~torch.isfinite(x)
+    if where is not None:
+        bad = bad & where
+    if bool(bad.any()):
+        first = [int(i) for i in bad.nonzero()[0]]
+        raise ValueError(f"{what}: {int(bad.sum())} non-finite value(s) (NaN/Inf), the first at index {first} "
+                         f"of shape {tuple(x.shape)}")
+
+
+def _check_size(height: int, width: int, what: str) -> None:
+    if height < 1 or width < 1:
+        raise ValueError(f"{what}: size {height}x{width}; want at least 1x1")
+
+
 def ball_normals(height: int, width: int, device=None, dtype=torch.float32):
     """Sphere normals ``1 x 3 x H x W`` and disk mask ``1 x 1 x H x W`` of a light-ball image."""
+    _check_size(height, width, "light ball")
     x = (torch.arange(width, device=device, dtype=dtype) + 0.5) * (2.0 / width) - 1.0
     y = 1.0 - (torch.arange(height, device=device, dtype=dtype) + 0.5) * (2.0 / height)
     yy, xx = torch.meshgrid(y, x, indexing="ij")
@@ -78,6 +97,7 @@ def normal_to_uv(normals: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
     infinite at +-1).  Computed in >= fp32: eps=1e-6 is not representable
     next to 1 in half precision.
     """
+    check_finite(normals, "normals")
     n = normals.float() if normals.dtype in (torch.float16, torch.bfloat16) else normals
     n = n * torch.rsqrt((n * n).sum(1, keepdim=True) + 1e-6)  # zero normals: grad <= 1e3, finite
     nx, ny, nz = n.unbind(1)
@@ -102,10 +122,16 @@ def ball_to_envmap(ball: torch.Tensor, valid: torch.Tensor | None = None,
     holes) get value 0 and valid 0; hidden texels: see the module docstring.
     """
     b, _, h, w = ball.shape
+    _check_size(h, w, "ball_to_envmap: light ball")  # (and r_max below would divide by zero)
     work = ball.float() if ball.dtype in (torch.float16, torch.bfloat16) else ball
     if valid is None:
         valid = ball_normals(h, w, ball.device, work.dtype)[1].expand(b, 1, h, w)
     valid = valid.to(work.dtype).expand(b, 1, h, w)
+    check_finite(valid, "ball_to_envmap: valid mask")
+    # Bad pixels outside the valid mask are what the mask is for: they are selected away below
+    # (NaN * 0 is NaN, so multiplying by the mask would not remove them); inside it they are an error.
+    check_finite(work, "ball_to_envmap: light ball pixels inside the valid mask", (valid > 0).expand_as(work))
+    work = torch.where(valid > 0, work, torch.zeros((), dtype=work.dtype, device=work.device))
     d = envmap_directions(height, width, ball.device, work.dtype)
     xy = torch.stack([d[0], -d[1]], -1)  # grid_sample y points down the image
     r = xy.norm(dim=-1, keepdim=True)

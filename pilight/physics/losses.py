@@ -34,11 +34,22 @@ def masked_mse(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = Non
 
     The denominator is clamped, not the result: with an all-zero mask the
     numerator is exactly 0, so loss and gradient are 0, never NaN.
+
+    Accumulated in >= fp32 whatever the input dtype: in fp16 the pixel count
+    of one 3 x 256^2 sample (196608) is past fp16's largest value (65504),
+    so the denominator became inf and the loss 0.  Masked-out pixels are
+    selected away (``torch.where``), not multiplied by 0: a NaN or Inf
+    there (an undefined background normal, say) would otherwise make the
+    whole loss NaN.  Where the mask is > 0, ``err * mask`` is what it was.
     """
-    err = (a - b).square()
+    work = torch.promote_types(torch.promote_types(a.dtype, b.dtype), torch.float32)
+    diff = a.to(work) - b.to(work)
     if mask is None:
-        return _reduce(err.flatten(1).mean(1), reduction)
-    m = mask.to(err.dtype)
+        return _reduce(diff.square().flatten(1).mean(1), reduction)
+    m = mask.to(work)
+    # Selected before squaring, so the backward pass gets 0 (not NaN * 0) at those pixels too.
+    diff = torch.where(m > 0, diff, torch.zeros((), dtype=work, device=diff.device))
+    err = diff.square()
     num = (err * m).flatten(1).sum(1)
     den = (m.expand_as(err) if m.shape[1] == 1 else m).flatten(1).sum(1)
     return _reduce(num / den.clamp_min(1e-8), reduction)

@@ -135,3 +135,77 @@ def test_gradcheck_diffuse_shading():
 def test_gradcheck_ball_to_envmap():
     ball = torch.rand(1, 3, 12, 12, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda b: ball_to_envmap(b)[0], (ball,), eps=1e-6, atol=1e-5)
+
+
+# --- issue 18: damaged inputs are refused or masked, never spread silently --------------------
+def test_masked_mse_fp16_accumulates_in_fp32():
+    from pilight.physics import masked_mse
+
+    # 3 x 256^2 valid values per sample: the old fp16 denominator overflowed to inf and the loss read 0.
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.rand(4, 3, 256, 256, generator=g), torch.rand(4, 3, 256, 256, generator=g)
+    mask = torch.ones(4, 1, 256, 256)
+    ref = masked_mse(a.double(), b.double(), mask.double())
+    got = masked_mse(a.half(), b.half(), mask.half())
+    assert got.dtype == torch.float32
+    assert float(got) == pytest.approx(float(ref), rel=1e-3) and float(ref) == pytest.approx(1 / 6, rel=0.02)
+
+
+def test_masked_mse_ignores_nan_in_masked_out_pixels_value_and_grad():
+    from pilight.physics import masked_mse
+
+    a = torch.rand(2, 3, 4, 4, requires_grad=True)
+    b = torch.rand(2, 3, 4, 4)
+    mask = torch.ones(2, 1, 4, 4)
+    mask[:, :, 0, 0] = 0
+    b_nan = b.clone()
+    b_nan[:, :, 0, 0] = float("nan")
+    loss = masked_mse(a, b_nan, mask)
+    assert torch.isfinite(loss) and torch.equal(loss, masked_mse(a, b, mask))
+    loss.backward()
+    assert torch.isfinite(a.grad).all()
+
+
+def test_masked_mse_fp32_values_unchanged():
+    from pilight.physics import masked_mse
+
+    # Correct runs must keep their bits: the where-select equals the old multiply wherever the mask is > 0.
+    g = torch.Generator().manual_seed(1)
+    a, b = torch.rand(3, 3, 8, 8, generator=g), torch.rand(3, 3, 8, 8, generator=g)
+    mask = (torch.rand(3, 1, 8, 8, generator=g) > 0.4).float()
+    err = (a - b).square()
+    old = (err * mask).flatten(1).sum(1) / mask.expand_as(err).flatten(1).sum(1).clamp_min(1e-8)
+    assert torch.equal(masked_mse(a, b, mask, reduction="none"), old)
+
+
+def test_nan_ball_texel_inside_the_disk_is_refused():
+    ball = ball_from_direction(torch.tensor([0.3, 0.5, 0.8]), 2.0, 0.3, size=16)
+    ball[0, 1, 8, 8] = float("nan")
+    with pytest.raises(ValueError, match=r"ball_to_envmap: light ball.*NaN/Inf.*\[0, 1, 8, 8\]"):
+        ball_to_envmap(ball)
+    ball[0, 1, 8, 8] = float("inf")
+    with pytest.raises(ValueError, match="non-finite"):
+        ball_to_envmap(ball)
+
+
+def test_nan_ball_pixel_outside_the_valid_mask_is_masked():
+    ball = ball_from_direction(torch.tensor([0.3, 0.5, 0.8]), 2.0, 0.3, size=16)
+    env, valid = ball_to_envmap(ball)
+    outside = ball_normals(16, 16)[1].expand_as(ball) == 0
+    damaged = torch.where(outside, torch.tensor(float("nan")), ball)  # every pixel off the disk, rim neighbours too
+    env2, valid2 = ball_to_envmap(damaged)
+    assert torch.equal(env, env2) and torch.equal(valid, valid2)
+
+
+def test_nan_normal_is_refused_by_diffuse_shading():
+    n = _extreme_normals()
+    n[0, 2, 0, 3] = float("nan")
+    with pytest.raises(ValueError, match=r"normals: 1 non-finite value"):
+        diffuse_shading(_env()[0], n)
+
+
+def test_empty_ball_is_a_clear_error():
+    with pytest.raises(ValueError, match="size 0x0"):
+        ball_to_envmap(torch.zeros(1, 3, 0, 0))
+    with pytest.raises(ValueError, match="size 0x0"):
+        ball_normals(0, 0)
