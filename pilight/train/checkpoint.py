@@ -21,6 +21,14 @@ so it survives a params change; :func:`claim_run` drops checkpoints of any other
 train nothing.  ``steps`` is not part of the identity: raising it continues a finished run.  A ``step_*`` folder is only
 considered if all three files exist and their safetensors headers parse (a truncated file fails
 that check), so hand-damaged folders are skipped too.
+
+``checksums.json`` holds the sha256 of every file of the folder, written last inside the temporary
+folder.  A header parses whatever happens to the tensor bytes after it, so only the checksum
+catches flipped bytes in the weights (resumed silently before: exit 0, final loss 5324 against
+0.36).  :func:`find_resume` verifies the newest checkpoint before resuming; a damaged one is named,
+and falling back to an older one (or to step 0) is said in so many words.  Weights holding NaN or
+Inf are never written (:class:`NonFiniteError`): a diverged run must not replace the last good
+checkpoint.
 """
 
 from __future__ import annotations
@@ -37,6 +45,8 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, load_model, save_file, save_model
 
+from pilight import atomic
+
 MODEL_FILE = "model.safetensors"
 OPTIMIZER_FILE = "optimizer.safetensors"
 STATE_FILE = "state.safetensors"
@@ -44,7 +54,30 @@ FILES = (MODEL_FILE, OPTIMIZER_FILE, STATE_FILE)
 EMA_FILE = "ema.safetensors"
 TMP_PREFIX = ".tmp-"
 RUN_FILE = "run.json"
+CHECKSUM_FILE = "checksums.json"
 _NAME = re.compile(r"^step_(\d{7,})$")
+
+
+class CheckpointError(ValueError):
+    """The checkpoint folder cannot be used as it is (a damaged run.json, a checkpoint that does not
+    restore); the message names the file and what to do."""
+
+
+class NonFiniteError(FloatingPointError):
+    """Weights or loss hold NaN/Inf: nothing is checkpointed or saved."""
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def non_finite_tensors(tensors: dict[str, torch.Tensor]) -> list[str]:
+    """Names of the floating-point tensors that hold NaN or Inf."""
+    return [k for k, t in tensors.items() if t.is_floating_point() and not bool(torch.isfinite(t).all())]
 
 
 def checkpoint_path(checkpoint_dir: Path, step: int) -> Path:
@@ -74,9 +107,67 @@ def list_checkpoints(checkpoint_dir: Path) -> list[Path]:
     return [p for _, p in sorted(found) if is_complete(p)]
 
 
+def damage(path: Path) -> str | None:
+    """What is wrong with the checkpoint folder ``path`` (None: every file is there, parses and
+    matches its checksum).  A folder written before checksums were recorded has none to match;
+    it passes if its headers parse, as it always did."""
+    path = Path(path)
+    for name in FILES:
+        f = path / name
+        if not f.is_file():
+            return f"{name} missing"
+        try:
+            with safe_open(str(f), framework="pt") as fh:
+                fh.metadata()
+        except Exception as exc:  # noqa: BLE001 - safetensors raises its own error types
+            return f"{name}: unreadable safetensors header ({exc})"
+    sums = path / CHECKSUM_FILE
+    if not sums.is_file():
+        return None
+    try:
+        recorded = json.loads(sums.read_text(encoding="utf-8"))["sha256"]
+        if not isinstance(recorded, dict):
+            raise ValueError("'sha256' is not an object")
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        return f"{CHECKSUM_FILE}: unreadable ({exc})"
+    for name, digest in sorted(recorded.items()):
+        f = path / name
+        if not f.is_file():
+            return f"{name} missing (listed in {CHECKSUM_FILE})"
+        if sha256_file(f) != digest:
+            return f"{name}: sha256 differs from {CHECKSUM_FILE} (the bytes were damaged after writing)"
+    return None
+
+
+def find_resume(checkpoint_dir: Path, max_step: int | None = None) -> tuple[Path | None, list[str]]:
+    """The newest verified checkpoint up to ``max_step``, and one warning line per damaged one
+    passed over, naming the damaged folder and the one used instead (or step 0)."""
+    d = Path(checkpoint_dir)
+    if not d.is_dir():
+        return None, []
+    found = sorted(((int(m.group(1)), p) for p in d.iterdir() if (m := _NAME.match(p.name)) and p.is_dir()),
+                   reverse=True)
+    damaged: list[Path] = []
+    notes: list[str] = []
+    for step, p in found:
+        if max_step is not None and step > max_step:
+            continue
+        problem = damage(p)
+        if problem is None:
+            if damaged:
+                notes.append(f"resuming from the previous checkpoint {p} instead of the damaged newest one "
+                             f"{damaged[0]}")
+            return p, notes
+        damaged.append(p)
+        notes.append(f"{p}: damaged checkpoint, not resumed: {problem}")
+    if damaged:
+        notes.append(f"no usable checkpoint in {d} (newest {damaged[0]} is damaged): training starts from step 0")
+    return None, notes
+
+
 def latest_checkpoint(checkpoint_dir: Path, max_step: int | None = None) -> Path | None:
-    ckpts = [p for p in list_checkpoints(checkpoint_dir) if max_step is None or step_of(p) <= max_step]
-    return ckpts[-1] if ckpts else None
+    """The newest verified checkpoint (see :func:`find_resume`, which also says what was skipped)."""
+    return find_resume(checkpoint_dir, max_step)[0]
 
 
 def step_of(path: Path) -> int:
@@ -118,7 +209,7 @@ def claim_run(checkpoint_dir: Path, identity: dict[str, Any], max_step: int) -> 
     d.mkdir(parents=True, exist_ok=True)
     run_file, found = d / RUN_FILE, list_checkpoints(d)
     wanted = json.loads(json.dumps(identity, sort_keys=True))
-    old = json.loads(run_file.read_text(encoding="utf-8")) if run_file.is_file() else None
+    old = _read_run_file(run_file) if run_file.is_file() else None
     dropped: list[str] = []
     if found and old != wanted:
         changed = sorted(k for k in set(wanted) | set(old or {}) if (old or {}).get(k) != wanted.get(k))
@@ -130,9 +221,27 @@ def claim_run(checkpoint_dir: Path, identity: dict[str, Any], max_step: int) -> 
         for p in late:
             shutil.rmtree(p)
     tmp = d / f"{TMP_PREFIX}{RUN_FILE}-{os.getpid()}"
-    tmp.write_text(json.dumps(wanted, indent=1, sort_keys=True) + "\n", encoding="utf-8")
-    os.replace(tmp, run_file)
+    try:
+        tmp.write_text(json.dumps(wanted, indent=1, sort_keys=True) + "\n", encoding="utf-8")
+        os.replace(tmp, run_file)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise atomic.path_error(exc, run_file, lambda name: name == str(tmp)) from exc
     return dropped
+
+
+def _read_run_file(run_file: Path) -> dict[str, Any]:
+    # Not guessed at: deleting the checkpoints of a run that might be this one could throw away
+    # hours of training, and keeping them could resume another run's weights.
+    try:
+        old = json.loads(run_file.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise CheckpointError(f"{run_file}: unreadable ({exc}); it records which run the checkpoints next to it "
+                              f"belong to. Restore it, or delete {run_file.parent} to train from step 0") from None
+    if not isinstance(old, dict):
+        raise CheckpointError(f"{run_file}: want a JSON object, got {type(old).__name__}; restore it, or delete "
+                              f"{run_file.parent} to train from step 0")
+    return old
 
 
 def remove_stale_tmp(checkpoint_dir: Path) -> None:
@@ -190,22 +299,37 @@ def save_checkpoint(
 ) -> Path:
     """Write ``step_<step>`` atomically, then prune to the newest ``keep`` checkpoints."""
     d = Path(checkpoint_dir)
-    d.mkdir(parents=True, exist_ok=True)
+    bad = non_finite_tensors(model.state_dict())
+    if ema is not None:
+        bad += [f"ema shadow {i}" for i, t in enumerate(ema.shadow_params) if not bool(torch.isfinite(t).all())]
+    if bad:
+        raise NonFiniteError(f"step {step}: weights hold NaN/Inf ({', '.join(bad[:3])}{', ...' if len(bad) > 3 else ''}); "
+                             f"not checkpointed, so {d} keeps its last good checkpoint (lower the lr?)")
     final = checkpoint_path(d, step)
     tmp = d / f"{TMP_PREFIX}{final.name}-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
-
-    save_model(model, str(tmp / MODEL_FILE))
-    opt_tensors, opt_meta = _flatten_optimizer(optimizer.state_dict())
-    save_file(opt_tensors, str(tmp / OPTIMIZER_FILE), metadata=opt_meta)
-    meta = {"progress": json.dumps({**progress, "step": step}), "scheduler": json.dumps(scheduler.state_dict())}
-    save_file({k: v.to("cpu").contiguous() for k, v in rng.items()}, str(tmp / STATE_FILE), metadata=meta)
-    if ema is not None:
-        _save_ema(ema, tmp / EMA_FILE)
-    for name in FILES + ((EMA_FILE,) if ema is not None else ()):
-        _fsync(tmp / name)
-    _fsync(tmp)
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir()
+        save_model(model, str(tmp / MODEL_FILE))
+        opt_tensors, opt_meta = _flatten_optimizer(optimizer.state_dict())
+        save_file(opt_tensors, str(tmp / OPTIMIZER_FILE), metadata=opt_meta)
+        meta = {"progress": json.dumps({**progress, "step": step}), "scheduler": json.dumps(scheduler.state_dict())}
+        save_file({k: v.to("cpu").contiguous() for k, v in rng.items()}, str(tmp / STATE_FILE), metadata=meta)
+        names = FILES + ((EMA_FILE,) if ema is not None else ())
+        if ema is not None:
+            _save_ema(ema, tmp / EMA_FILE)
+        sums = {"sha256": {name: sha256_file(tmp / name) for name in names}}
+        (tmp / CHECKSUM_FILE).write_text(json.dumps(sums, indent=1, sort_keys=True) + "\n", encoding="utf-8")
+        for name in names + (CHECKSUM_FILE,):
+            _fsync(tmp / name)
+        _fsync(tmp)
+    except OSError as exc:  # a full disk or a read-only folder: name the checkpoint, not a temporary
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise atomic.path_error(exc, final, lambda name: name.startswith(str(tmp))) from exc
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
 
     if final.exists():  # same step saved again (e.g. a damaged folder): move aside, never rename onto it
         trash = d / f"{TMP_PREFIX}old-{final.name}-{os.getpid()}"
@@ -229,17 +353,23 @@ def load_checkpoint(
 ) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
     """Restore model/optimizer/scheduler (and the EMA, if given) in place; return (progress dict, RNG tensors)."""
     path = Path(path)
-    # strict: a checkpoint from a different architecture must fail loudly, not half-load.
-    load_model(model, str(path / MODEL_FILE), strict=True)
-    with safe_open(str(path / OPTIMIZER_FILE), framework="pt") as fh:
-        opt_meta = fh.metadata()
-    optimizer.load_state_dict(_unflatten_optimizer(load_file(str(path / OPTIMIZER_FILE)), opt_meta))
-    with safe_open(str(path / STATE_FILE), framework="pt") as fh:
-        meta = fh.metadata()
-    scheduler.load_state_dict(json.loads(meta["scheduler"]))
-    if ema is not None:
-        _load_ema(ema, path / EMA_FILE)
-    return json.loads(meta["progress"]), load_file(str(path / STATE_FILE))
+    try:
+        # strict: a checkpoint from a different architecture must fail loudly, not half-load.
+        load_model(model, str(path / MODEL_FILE), strict=True)
+        with safe_open(str(path / OPTIMIZER_FILE), framework="pt") as fh:
+            opt_meta = fh.metadata()
+        optimizer.load_state_dict(_unflatten_optimizer(load_file(str(path / OPTIMIZER_FILE)), opt_meta))
+        with safe_open(str(path / STATE_FILE), framework="pt") as fh:
+            meta = fh.metadata()
+        scheduler.load_state_dict(json.loads(meta["scheduler"]))
+        if ema is not None:
+            _load_ema(ema, path / EMA_FILE)
+        return json.loads(meta["progress"]), load_file(str(path / STATE_FILE))
+    except (OSError, CheckpointError):
+        raise
+    except Exception as exc:  # noqa: BLE001 - strict-load RuntimeError, SafetensorError, bad JSON metadata, ...
+        raise CheckpointError(f"{path}: cannot resume from this checkpoint ({type(exc).__name__}: {exc}); "
+                              f"delete it to fall back to an older one, or {path.parent} to train from step 0") from exc
 
 
 def _save_ema(ema: Any, path: Path) -> None:
@@ -258,6 +388,6 @@ def _load_ema(ema: Any, path: Path) -> None:
         state = json.loads(fh.metadata()["ema"])
     tensors = load_file(str(path))
     if len(tensors) != len(ema.shadow_params):
-        raise ValueError(f"{path}: {len(tensors)} EMA tensors for {len(ema.shadow_params)} trainable parameters")
+        raise CheckpointError(f"{path}: {len(tensors)} EMA tensors for {len(ema.shadow_params)} trainable parameters")
     device = ema.shadow_params[0].device
     ema.load_state_dict({**state, "shadow_params": [tensors[f"shadow.{i:05d}"].to(device) for i in range(len(tensors))]})

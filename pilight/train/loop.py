@@ -144,6 +144,21 @@ def _average_gradients(params: list[torch.nn.Parameter], world: int) -> None:
         p.grad.div_(world)
 
 
+def _check_finite_before_saving(acc: Accelerator, win_loss: torch.Tensor, win_n: int,
+                                params: list[torch.nn.Parameter], ema: Any, step: int) -> None:
+    """NonFiniteError if the loss of the steps since the last log, or the weights (raw or EMA), hold NaN/Inf."""
+    if win_n:
+        pending = acc.reduce(win_loss / win_n, "mean").item()
+        if not math.isfinite(pending):
+            raise ckpt.NonFiniteError(f"non-finite loss {pending} at step {step}; not checkpointed")
+    bad = [i for i, p in enumerate(params) if not bool(torch.isfinite(p).all())]
+    if ema is not None:
+        bad += [f"ema {i}" for i, t in enumerate(ema.shadow_params) if not bool(torch.isfinite(t).all())]
+    if bad:
+        raise ckpt.NonFiniteError(f"weights hold NaN/Inf after step {step} (trainable tensor(s) {bad[:3]}); "
+                                  "not checkpointed (lower the lr?)")
+
+
 def _truncate_history(metrics_dir: Path, step: int) -> None:
     """Drop dvclive rows logged after the checkpoint we resume from (they will be logged again)."""
     for tsv in metrics_dir.rglob("*.tsv"):
@@ -215,7 +230,10 @@ def train(task: Task, cfg: LoopConfig, checkpoint_dir: Path, live_dir: Path | No
             for line in ckpt.claim_run(checkpoint_dir, identity, cfg.steps):
                 acc.print(line)
     acc.wait_for_everyone()
-    latest = ckpt.latest_checkpoint(checkpoint_dir, max_step=cfg.steps)
+    latest, notes = ckpt.find_resume(checkpoint_dir, max_step=cfg.steps)
+    if acc.is_main_process:
+        for note in notes:  # a damaged checkpoint and the fallback are said, never silent
+            warnings.warn(note, stacklevel=2)
     if latest is not None:
         state, rng = ckpt.load_checkpoint(latest, model=acc.unwrap_model(model), optimizer=optimizer,
                                           scheduler=scheduler, ema=ema)
@@ -262,7 +280,8 @@ def train(task: Task, cfg: LoopConfig, checkpoint_dir: Path, live_dir: Path | No
                 now = time.perf_counter()
                 final_loss = acc.reduce(win_loss / win_n, "mean").item()  # all processes reach this together
                 if not math.isfinite(final_loss):  # stop before a checkpoint of diverged weights replaces a good one
-                    raise FloatingPointError(f"non-finite loss {final_loss} at step {step}")
+                    raise ckpt.NonFiniteError(f"non-finite loss {final_loss} at step {step}; not checkpointed, "
+                                              f"{checkpoint_dir} keeps its last good checkpoint")
                 rate = win_n * task.samples_per_batch * acc.num_processes / max(now - win_t, 1e-9)
                 bar.set_postfix(loss=f"{final_loss:.4f}")
                 if live is not None:
@@ -283,6 +302,10 @@ def train(task: Task, cfg: LoopConfig, checkpoint_dir: Path, live_dir: Path | No
                 model.train()
 
             if step % cfg.checkpoint_every == 0 or step == cfg.steps:
+                # checkpoint_every < log_every: the loss check above has not seen these steps yet, and
+                # a finite loss can precede NaN weights (the update after it diverged). Every process
+                # checks, so none is left waiting in a collective when the main one would refuse.
+                _check_finite_before_saving(acc, win_loss, win_n, params, ema, step)
                 rng = _rng_tensors(acc, generator)  # collective: every process, before the main one writes
                 if acc.is_main_process:
                     seconds = prior_seconds + time.perf_counter() - start

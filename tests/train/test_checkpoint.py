@@ -68,8 +68,10 @@ def test_files_are_plain_safetensors(tmp_path: Path):
     model, opt, sched = _setup()
     _train_a_bit(model, opt, sched)
     path = _save(tmp_path, 1, model, opt, sched)
-    assert sorted(p.name for p in path.iterdir()) == sorted(ckpt.FILES)
+    assert sorted(p.name for p in path.iterdir()) == sorted(ckpt.FILES + (ckpt.CHECKSUM_FILE,))
     for f in path.iterdir():
+        if f.name == ckpt.CHECKSUM_FILE:
+            continue
         raw = f.read_bytes()
         (n,) = struct.unpack("<Q", raw[:8])  # safetensors: u64 header length, then a JSON header
         json.loads(raw[8:8 + n])
@@ -114,3 +116,89 @@ def test_no_checkpoint(tmp_path: Path):
     (tmp_path / "step_0000001").mkdir()
     (tmp_path / "notes.txt").write_text("x")
     assert ckpt.latest_checkpoint(tmp_path) is None
+
+
+# --- issue 18: checksums, named damage, explicit fallback, nothing non-finite written ---------
+def _flip_weight_bytes(f: Path, n: int = 64) -> None:
+    raw = bytearray(f.read_bytes())
+    (header,) = struct.unpack("<Q", raw[:8])
+    for i in range(8 + header, min(len(raw), 8 + header + n)):  # tensor data only: the header still parses
+        raw[i] ^= 0xFF
+    f.write_bytes(bytes(raw))
+
+
+def test_checksums_cover_every_file(tmp_path: Path):
+    model, opt, sched = _setup()
+    _train_a_bit(model, opt, sched, 1)
+    path = _save(tmp_path, 1, model, opt, sched)
+    sums = json.loads((path / ckpt.CHECKSUM_FILE).read_text())["sha256"]
+    assert sorted(sums) == sorted(ckpt.FILES)
+    assert all(sums[n] == ckpt.sha256_file(path / n) for n in sums)
+    assert ckpt.damage(path) is None
+
+
+def test_flipped_weight_bytes_are_caught_and_the_fallback_is_named(tmp_path: Path):
+    model, opt, sched = _setup()
+    _train_a_bit(model, opt, sched, 1)
+    good = _save(tmp_path, 5, model, opt, sched)
+    bad = _save(tmp_path, 6, model, opt, sched)
+    _flip_weight_bytes(bad / ckpt.MODEL_FILE)
+    assert ckpt.is_complete(bad)  # the header check alone passed it: it used to be resumed silently
+    path, notes = ckpt.find_resume(tmp_path)
+    assert path == good and ckpt.latest_checkpoint(tmp_path) == good
+    assert any(str(bad) in n and "model.safetensors: sha256 differs" in n for n in notes)
+    assert any(str(good) in n and str(bad) in n for n in notes)  # the fallback names both folders
+
+
+def test_truncated_only_checkpoint_says_training_restarts(tmp_path: Path):
+    model, opt, sched = _setup()
+    _train_a_bit(model, opt, sched, 1)
+    bad = _save(tmp_path, 3, model, opt, sched)
+    f = bad / ckpt.OPTIMIZER_FILE
+    f.write_bytes(f.read_bytes()[:-17])
+    path, notes = ckpt.find_resume(tmp_path)
+    assert path is None
+    assert any(str(bad) in n and "optimizer.safetensors" in n for n in notes)
+    assert any("starts from step 0" in n for n in notes)
+
+
+def test_checkpoint_without_checksums_still_resumes(tmp_path: Path):
+    # Folders written before checksums existed keep resuming (headers checked, as before).
+    model, opt, sched = _setup()
+    _train_a_bit(model, opt, sched, 1)
+    path = _save(tmp_path, 2, model, opt, sched)
+    (path / ckpt.CHECKSUM_FILE).unlink()
+    assert ckpt.find_resume(tmp_path) == (path, [])
+
+
+def test_non_finite_weights_are_never_checkpointed(tmp_path: Path):
+    model, opt, sched = _setup()
+    _train_a_bit(model, opt, sched, 1)
+    good = _save(tmp_path, 1, model, opt, sched)
+    with torch.no_grad():
+        model[0].weight[0, 0] = float("nan")
+    with pytest.raises(ckpt.NonFiniteError, match=r"step 2: weights hold NaN/Inf \(0.weight\)"):
+        _save(tmp_path, 2, model, opt, sched)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [good.name]
+
+
+@pytest.mark.parametrize("content", ["{not json", "[1, 2]"])
+def test_bad_run_json_is_a_message(tmp_path: Path, content: str):
+    model, opt, sched = _setup()
+    _train_a_bit(model, opt, sched, 1)
+    _save(tmp_path, 1, model, opt, sched)
+    (tmp_path / ckpt.RUN_FILE).write_text(content)
+    with pytest.raises(ckpt.CheckpointError, match=rf"{tmp_path / ckpt.RUN_FILE}: .*delete {tmp_path}"):
+        ckpt.claim_run(tmp_path, {"seed": 1}, 10)
+    assert ckpt.latest_checkpoint(tmp_path) is not None  # nothing was deleted on a guess
+
+
+def test_checkpoint_of_another_architecture_is_a_message(tmp_path: Path):
+    model, opt, sched = _setup()
+    _train_a_bit(model, opt, sched, 1)
+    path = _save(tmp_path, 1, model, opt, sched)
+    other = torch.nn.Sequential(torch.nn.Linear(4, 7), torch.nn.ReLU(), torch.nn.Linear(7, 2))
+    opt2 = torch.optim.AdamW(other.parameters())
+    sched2 = torch.optim.lr_scheduler.LambdaLR(opt2, lambda s: 1.0)
+    with pytest.raises(ckpt.CheckpointError, match=rf"{path}: cannot resume"):
+        ckpt.load_checkpoint(path, model=other, optimizer=opt2, scheduler=sched2)
