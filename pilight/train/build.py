@@ -22,6 +22,7 @@ from pilight.diffusion.model import DomainDiffusion
 from pilight.diffusion.schedule import make_train_scheduler
 from pilight.diffusion.unet import UNetSpec, build_unet, load_pretrained_unet
 from pilight.params import SamplingParams
+from pilight.train.checkpoint import sha256_file
 
 # How the training-time image grids (dvclive) sample: one evaluation at t = T-1, the model's x0
 # estimate from pure noise. Four DDIM steps, used before, showed pure noise all through a
@@ -101,20 +102,55 @@ def trainable_state(model: torch.nn.Module) -> dict[str, torch.Tensor]:
             if k in keep or not k.startswith("conditioning.")}
 
 
+MODEL_FILE = "model.safetensors"
+CHECKSUM_FILE = "checksums.json"
+
+
 def save_model(stack: Stack, out_dir: Path, params: dict) -> None:
+    """Weights, config.json, then checksums.json (sha256 of the weights, which load_model verifies).
+
+    Written last, so a crash between the files leaves new weights with the old checksum, which
+    load_model reports as a mismatch rather than loading weights of unknown provenance."""
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     state = trainable_state(stack.model)
-    atomic.write_with(out_dir / "model.safetensors", lambda tmp: save_file(state, tmp))
+    bad = [k for k, t in state.items() if t.is_floating_point() and not bool(torch.isfinite(t).all())]
+    if bad:
+        raise ModelError(f"{out_dir / MODEL_FILE}: not saved, the trained weights hold NaN/Inf "
+                         f"({', '.join(bad[:3])}{', ...' if len(bad) > 3 else ''})")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    atomic.write_with(out_dir / MODEL_FILE, lambda tmp: save_file(state, tmp))
     atomic.write_text(out_dir / "config.json", json.dumps({"params": params, "parts": stack.describe()}, indent=1, sort_keys=True))
+    atomic.write_json(out_dir / CHECKSUM_FILE, {"sha256": {MODEL_FILE: sha256_file(out_dir / MODEL_FILE)}},
+                      sort_keys=True)
 
 
 def load_model(stack: Stack, model_dir: Path) -> None:
-    path = Path(model_dir) / "model.safetensors"
+    """Load trained weights into ``stack``; every way the file can be wrong is a ModelError naming it."""
+    path = Path(model_dir) / MODEL_FILE
     if not path.is_file():
         raise ModelError(f"{path}: trained model not found; run the training stage first")
-    state = load_file(str(path))
-    missing, unexpected = stack.model.load_state_dict(state, strict=False)
+    sums = Path(model_dir) / CHECKSUM_FILE
+    if sums.is_file():  # a model saved before checksums were recorded has none: it loads as before
+        try:
+            digest = json.loads(sums.read_text(encoding="utf-8"))["sha256"][MODEL_FILE]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise ModelError(f"{sums}: unreadable ({type(exc).__name__}: {exc}); rerun the training stage") from None
+        if sha256_file(path) != digest:
+            raise ModelError(f"{path}: sha256 differs from {sums}: the weights were damaged or only partly "
+                             "written; rerun the training stage")
+    try:
+        state = load_file(str(path))
+    except Exception as exc:  # noqa: BLE001 - safetensors raises its own error types on truncation
+        raise ModelError(f"{path}: unreadable safetensors file ({exc}); truncated or not a model, "
+                         "rerun the training stage") from None
+    bad = [k for k, t in state.items() if t.is_floating_point() and not bool(torch.isfinite(t).all())]
+    if bad:
+        raise ModelError(f"{path}: weights hold NaN/Inf ({', '.join(bad[:3])}); rerun the training stage")
+    try:
+        missing, unexpected = stack.model.load_state_dict(state, strict=False)
+    except RuntimeError as exc:  # shapes differ: the params build another architecture than the one saved
+        first = str(exc).strip().splitlines()[1:2] or [str(exc)]
+        raise ModelError(f"{path}: does not match the params' model ({first[0].strip()})") from None
     missing = [k for k in missing if k in trainable_state(stack.model)]
     if missing or unexpected:
         raise ModelError(f"{path}: does not match the params' model (missing {missing[:3]}, unexpected {unexpected[:3]})")
