@@ -1,0 +1,421 @@
+"""The `pilight` console script: decompose and relight your own photos (a thin layer on
+``pilight.pipeline``).
+
+    pilight decompose photo.jpg -o out/                       albedo, normal, roughness, metallic
+    pilight relight photos/ -o out/ --light left --light right relit image, D, S, contact sheet
+    pilight relight 'shots/*.png' -o out/ --hdri studio.exr --rotate 0 --rotate 90
+    pilight ball -o balls/ --azimuth 45 --elevation 30         see a light before using it
+
+Photos: PNG / JPEG / TIFF (sRGB, 8 or 16 bit, EXIF orientation, alpha = mask, gray) and EXR / HDR
+(linear); files, folders (their photos, not recursive) or quoted globs. Outputs go to
+OUT/<photo name>/ (relight: OUT/<photo name>/<light>/), EXR linear plus PNG previews; every file
+is written, then renamed, and outputs already complete are skipped (--overwrite redoes them).
+
+Light directions are in camera space: azimuth 0 = from the camera, +90 = from the picture's right,
+-90 = from its left, 180 = from behind the subject; elevation 0 = level with the camera, +90 = from
+straight above. Named lights: left (-90, 30), right (90, 30), top (0, 90), bottom (0, -90),
+front (0, 0) as (azimuth, elevation). An HDRI is a 2:1 lat-long panorama whose centre lies straight
+ahead of the camera; --rotate +DEG turns it clockwise seen from above (what was DEG to the left
+comes from straight ahead).
+
+Exit status: 0 done, 1 bad input, model or output folder (nothing written), 2 bad options.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+DECOMPOSE_MAPS = ("albedo", "normal", "roughness", "metallic")
+RELIGHT_MAPS = ("relit", "diffuse", "specular")
+CONTACT_HEIGHT = 512  # contact sheets are at most this tall, so a 24-megapixel photo gives a viewable PNG
+
+
+class CliError(Exception):
+    def __init__(self, message: str, code: int = 1):
+        super().__init__(message)
+        self.code = code
+
+
+# --- arguments ---------------------------------------------------------------------------------
+def _light_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("light (repeat any of them: one output per light)")
+    g.add_argument("--light", action="append", default=[], metavar="NAME",
+                   help="a named direction: left | right | top | bottom | front")
+    g.add_argument("--azimuth", action="append", type=float, default=[], metavar="DEG",
+                   help="direction toward the light, camera space: 0 = from the camera, +90 = from the right, "
+                        "-90 = from the left, 180 = from behind the subject (pair with --elevation)")
+    g.add_argument("--elevation", action="append", type=float, default=[], metavar="DEG",
+                   help="0 = level with the camera, +90 = from straight above, -90 = from below "
+                        "(one for all --azimuth values, or one each)")
+    g.add_argument("--ball", action="append", type=Path, default=[], metavar="FILE",
+                   help="a gray light ball (rendered or photographed), cropped square, touching the borders")
+    g.add_argument("--hdri", action="append", type=Path, default=[], metavar="FILE",
+                   help="an equirectangular 2:1 panorama (.exr / .hdr linear; PNG/JPEG sRGB); its centre is "
+                        "straight ahead of the camera")
+    g.add_argument("--rotate", action="append", type=float, default=[], metavar="DEG",
+                   help="turn the HDRI about the vertical axis, clockwise seen from above; several values with one "
+                        "--hdri give one light each")
+    g.add_argument("--intensity", type=float, default=1.0,
+                   help="multiplies every light (1 = a directional light at the training data's typical level, "
+                        "or a ball/HDRI as stored)")
+
+
+def _model_options(p: argparse.ArgumentParser, stage: str) -> None:
+    g = p.add_argument_group("model and sampling (defaults: params.yaml's "
+                             f"{'infer_intrinsics' if stage == 'intrinsics' else 'relight_infer'}, or the saved pipeline's)")
+    g.add_argument("--models", type=Path, default=Path("models"),
+                   help="folder with intrinsics/ and relight/ (default: models, where `dvc repro` puts them)")
+    g.add_argument("--params", type=Path, default=Path("params.yaml"),
+                   help="params file for the defaults (ignored when it does not exist or --models holds pipeline.json)")
+    g.add_argument("--resolution", type=int, default=None, metavar="PX",
+                   help="processing size of the longer side, rounded to the models' size multiple, aspect kept "
+                        "(default: render.resolution, the training size; 0 = the photo's own size). Outputs are "
+                        "always at the photo's size")
+    g.add_argument("--mode", choices=("ddim", "single_step"), default=None, help="sampler")
+    g.add_argument("--steps", type=int, default=None, help="DDIM steps (implies --mode ddim)")
+    g.add_argument("--cfg", type=float, default=None, help="classifier-free guidance scale")
+    g.add_argument("--ensemble", type=int, default=None, help="noise draws averaged per output")
+    g.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda", "mps"))
+    g.add_argument("--max-memory", type=float, default=None, metavar="GIB",
+                   help="refuse photos whose processing would need more (default: 80%% of RAM, or of GPU memory)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="pilight", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="command", required=True)
+    d = sub.add_parser("decompose", help="albedo, normal, roughness, metallic of each photo",
+                       formatter_class=argparse.RawDescriptionHelpFormatter, description=__doc__)
+    d.add_argument("photos", nargs="+", metavar="PHOTO", help="files, folders or quoted globs")
+    d.add_argument("-o", "--out", type=Path, required=True, metavar="OUT")
+    d.add_argument("--overwrite", action="store_true", help="redo outputs that are already complete")
+    _model_options(d, "intrinsics")
+    r = sub.add_parser("relight", help="each photo under each light: relit image, D, S, contact sheet",
+                       formatter_class=argparse.RawDescriptionHelpFormatter, description=__doc__)
+    r.add_argument("photos", nargs="+", metavar="PHOTO", help="files, folders or quoted globs")
+    r.add_argument("-o", "--out", type=Path, required=True, metavar="OUT")
+    r.add_argument("--overwrite", action="store_true", help="redo outputs that are already complete")
+    _light_options(r)
+    _model_options(r, "relight")
+    b = sub.add_parser("ball", help="write the light ball each light spec makes (no model needed)",
+                       formatter_class=argparse.RawDescriptionHelpFormatter, description=__doc__)
+    b.add_argument("-o", "--out", type=Path, required=True, metavar="OUT")
+    b.add_argument("--size", type=int, default=256, help="ball image size in pixels")
+    _light_options(b)
+    return ap
+
+
+# --- inputs and outputs --------------------------------------------------------------------------
+def expand_inputs(items: list[str]) -> list[Path]:
+    """Files as given, folders' photos (sorted), globs' matches (sorted); duplicates once."""
+    from pilight.photo import PHOTO_SUFFIXES
+
+    out: list[Path] = []
+    for item in items:
+        p = Path(item)
+        if p.is_dir():
+            found = sorted(f for f in p.iterdir() if f.is_file() and f.suffix.lower() in PHOTO_SUFFIXES)
+            if not found:
+                raise CliError(f"{p}: folder holds no photos ({', '.join(PHOTO_SUFFIXES)})")
+            out += found
+        elif not p.exists() and glob.has_magic(item):
+            found = sorted(Path(f) for f in glob.glob(item) if Path(f).is_file())
+            if not found:
+                raise CliError(f"{item}: no file matches")
+            out += found
+        else:
+            out.append(p)  # missing or unreadable files are reported by the header check, with the others
+    seen, unique = set(), []
+    for p in out:
+        key = p.resolve()
+        if key not in seen:
+            seen.add(key)
+            unique.append(p)
+    return unique
+
+
+def output_names(photos: list[Path]) -> dict[Path, str]:
+    """Each photo's output folder name (its stem); two photos with one stem would overwrite each other."""
+    by_name: dict[str, list[Path]] = {}
+    for p in photos:
+        by_name.setdefault(p.stem, []).append(p)
+    clash = {n: ps for n, ps in by_name.items() if len(ps) > 1}
+    if clash:
+        n, ps = next(iter(clash.items()))
+        raise CliError(f"{', '.join(map(str, ps))}: these photos would all write OUT/{n}/; rename one, or run them "
+                       "with different -o folders")
+    return {p: p.stem for p in photos}
+
+
+def check_writable(out: Path) -> None:
+    """Fail now, not after minutes of work, when OUT cannot hold files."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=out, prefix=".pilight-write-test.")
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as exc:
+        raise CliError(f"{out}: cannot write outputs there ({exc.strerror or exc})") from None
+
+
+def write_group(files: dict[Path, object]) -> None:
+    """Write several files (EXR arrays or PNG uint8 arrays by suffix), each to a temporary, then
+    renamed; if any fails, the ones already renamed are removed, so a photo's outputs appear
+    together or not at all."""
+    import numpy as np
+
+    from pilight import atomic
+    from pilight.data.exr import write_exr
+
+    done: list[Path] = []
+    try:
+        for path, arr in files.items():
+            if path.suffix == ".exr":
+                write_exr(path, np.asarray(arr, np.float32), half=True)
+            else:
+                atomic.write_png(path, arr)
+            done.append(path)
+    except BaseException:
+        for p in done:
+            p.unlink(missing_ok=True)
+        raise
+
+
+def _complete(paths) -> bool:
+    return all(p.is_file() for p in paths)
+
+
+def decompose_files(folder: Path) -> list[Path]:
+    return [folder / f"{m}.{ext}" for m in DECOMPOSE_MAPS for ext in ("exr", "png")]
+
+
+def relight_files(folder: Path, branches) -> list[Path]:
+    return ([folder / f"{b}.{ext}" for b in branches for ext in ("exr", "png")]
+            + [folder / "ball.exr", folder / "ball.png", folder / "contact.png"])
+
+
+# --- commands --------------------------------------------------------------------------------------
+def _pipeline(args, stage: str):
+    from pilight.params import ParamsError
+    from pilight.pipeline import PILightPipeline, PipelineError, PIPELINE_FILE
+
+    if args.resolution is not None and args.resolution < 0:
+        raise CliError(f"--resolution must be >= 0 (0 = the photo's own size), got {args.resolution}", 2)
+    for flag, v in (("--steps", args.steps), ("--ensemble", args.ensemble)):
+        if v is not None and v < 1:
+            raise CliError(f"{flag} must be >= 1, got {v}", 2)
+    if args.cfg is not None and args.cfg < 0:
+        raise CliError(f"--cfg must be >= 0, got {args.cfg}", 2)
+    if args.max_memory is not None and args.max_memory <= 0:
+        raise CliError(f"--max-memory must be > 0 GiB, got {args.max_memory}", 2)
+    try:
+        pipe = PILightPipeline.from_pretrained(args.models, device=args.device, params=args.params)
+    except ParamsError as exc:
+        raise CliError(str(exc), 2) from None
+    except PipelineError as exc:
+        raise CliError(str(exc)) from None
+    # Only the checkout's own models/ are expected to match its params.yaml; another folder is
+    # the user's choice and is used as its config.json says.
+    dvc_models = args.params.is_file() and args.models.resolve() == (args.params.resolve().parent / "models")
+    if dvc_models and not (args.models / PIPELINE_FILE).is_file():
+        try:
+            stale = {s: k for s, k in pipe.stale_keys(args.params).items() if k}
+        except ParamsError:
+            stale = {}
+        for s, keys in stale.items():
+            shown = ", ".join(keys[:5]) + (f" and {len(keys) - 5} more" if len(keys) > 5 else "")
+            print(f"pilight: warning: {args.models / s} was trained with other values of {shown} than "
+                  f"{args.params} now holds; `dvc repro train_relight` retrains it (the saved model is used as is)",
+                  file=sys.stderr)
+    from dataclasses import replace
+
+    key = "intrinsics_sampling" if stage == "intrinsics" else "relight_sampling"
+    sp = getattr(pipe.config, key)
+    update = {k: v for k, v in (("steps", args.steps), ("cfg_scale", args.cfg), ("ensemble", args.ensemble),
+                                ("mode", args.mode or ("ddim" if args.steps is not None else None))) if v is not None}
+    pipe.config = replace(pipe.config, **{key: sp.model_copy(update=update)})
+    if args.resolution is not None:
+        pipe.config = replace(pipe.config, processing_resolution=args.resolution)
+    return pipe
+
+
+def _check_photos(pipe, photos: list[Path], lights: int, max_memory_gib: float | None) -> None:
+    """Header of every photo read and checked (size, memory) before any is processed."""
+    from pilight.photo import PhotoError, check_size, probe
+    from pilight.pipeline import MemoryLimitError
+
+    errors = []
+    limit = None if max_memory_gib is None else max_memory_gib * 1024 ** 3
+    for p in photos:
+        try:
+            h, w = probe(p)  # the header only: nothing of the pixels is allocated yet
+            check_size(h, w, str(p))
+            pipe.check_memory(h, w, lights, name=str(p), max_memory=limit)
+        except (PhotoError, MemoryLimitError) as exc:
+            errors.append(str(exc))
+    if errors:
+        raise CliError("\n".join(errors) + f"\nnothing was written ({len(errors)} of {len(photos)} photo(s) refused)")
+
+
+def _progress(total: int, desc: str):
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="photo", dynamic_ncols=True, file=sys.stderr)
+
+
+def cmd_decompose(args) -> int:
+    from pilight.photo import PhotoError, linear_to_srgb8, normal_preview, read_photo
+
+    photos = expand_inputs(args.photos)
+    names = output_names(photos)
+    check_writable(args.out)
+    pipe = _pipeline(args, "intrinsics")
+    _check_photos(pipe, photos, 0, args.max_memory)
+    todo = [p for p in photos if args.overwrite or not _complete(decompose_files(args.out / names[p]))]
+    if len(todo) < len(photos):
+        print(f"pilight: {len(photos) - len(todo)} photo(s) already decomposed in {args.out}, skipped "
+              "(--overwrite redoes them)", file=sys.stderr)
+    failed = 0
+    with _progress(len(todo), "decompose") as bar:
+        for p in todo:
+            try:
+                photo = read_photo(p)
+                d = pipe.decompose(photo, name=str(p))
+            except PhotoError as exc:
+                print(f"pilight: {exc}", file=sys.stderr)
+                failed += 1
+                bar.update(1)
+                continue
+            folder = args.out / names[p]
+            a = d.mask
+            files = {folder / "albedo.exr": d.albedo, folder / "albedo.png": linear_to_srgb8(d.albedo, a),
+                     folder / "normal.exr": d.normal, folder / "normal.png": normal_preview(d.normal, a),
+                     folder / "roughness.exr": d.roughness, folder / "roughness.png": linear_to_srgb8(d.roughness, a),
+                     folder / "metallic.exr": d.metallic, folder / "metallic.png": linear_to_srgb8(d.metallic, a)}
+            _write_or_fail(files, folder)
+            bar.set_postfix_str(f"{p.name} at {d.processing_size[1]}x{d.processing_size[0]}")
+            bar.update(1)
+    print(f"pilight: decomposed {len(todo) - failed} photo(s) into {args.out}", file=sys.stderr)
+    return 1 if failed else 0
+
+
+def _write_or_fail(files, folder: Path) -> None:
+    try:
+        write_group(files)
+    except OSError as exc:
+        raise CliError(f"{folder}: cannot write outputs ({exc.strerror or exc}); nothing of this photo was kept") from None
+
+
+def contact_sheet(photo_rgb, ball, relit):
+    """input | light ball | relit, side by side at most CONTACT_HEIGHT tall (sRGB uint8)."""
+    import numpy as np
+    import torch
+    import torch.nn.functional as F
+
+    from pilight.photo import linear_to_srgb8
+
+    h, w = photo_rgb.shape[:2]
+    th = min(h, CONTACT_HEIGHT)
+    tw = max(1, round(w * th / h))
+
+    def fit(a, size):
+        t = torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).permute(2, 0, 1)[None]
+        t = F.interpolate(t, size=size, mode="bilinear", align_corners=False, antialias=True)
+        return t[0].permute(1, 2, 0).numpy()
+
+    gap = np.full((th, 4, 3), 255, np.uint8)
+    return np.concatenate([linear_to_srgb8(fit(photo_rgb, (th, tw))), gap, linear_to_srgb8(fit(ball, (th, th))), gap,
+                           linear_to_srgb8(fit(relit, (th, tw)))], axis=1)
+
+
+def _lights(args, size: int):
+    from pilight.lights import LightError, parse_lights
+
+    try:
+        return parse_lights(args.light, args.azimuth, args.elevation, args.ball, args.hdri, args.rotate,
+                            args.intensity, size)
+    except LightError as exc:
+        raise CliError(str(exc), 2) from None
+
+
+def cmd_relight(args) -> int:
+    from pilight.lights import BALL_SIZE, ball_preview
+    from pilight.photo import PhotoError, linear_to_srgb8, read_photo
+
+    lights = _lights(args, BALL_SIZE)  # bad light options fail before any model is loaded
+    photos = expand_inputs(args.photos)
+    names = output_names(photos)
+    check_writable(args.out)
+    pipe = _pipeline(args, "relight")
+    if pipe.config.ball_resolution != BALL_SIZE:
+        lights = _lights(args, pipe.config.ball_resolution)
+    _check_photos(pipe, photos, len(lights), args.max_memory)
+    branches = pipe.relight_task.branches
+    pending = {p: [l for l in lights if args.overwrite or not _complete(relight_files(args.out / names[p] / l.name, branches))]
+               for p in photos}
+    todo = [p for p in photos if pending[p]]
+    skipped = sum(len(lights) - len(v) for v in pending.values())
+    if skipped:
+        print(f"pilight: {skipped} (photo, light) output(s) already complete in {args.out}, skipped "
+              "(--overwrite redoes them)", file=sys.stderr)
+    failed = 0
+    with _progress(len(todo), f"relight x{len(lights)} light(s)") as bar:
+        for p in todo:
+            try:
+                photo = read_photo(p)
+                out = pipe.relight(photo, pending[p], name=str(p))
+            except PhotoError as exc:
+                print(f"pilight: {exc}", file=sys.stderr)
+                failed += 1
+                bar.update(1)
+                continue
+            for i, light in enumerate(out.lights):
+                folder = args.out / names[p] / light.name
+                files = {}
+                for b in branches:
+                    arr = getattr(out, b)[i]
+                    files[folder / f"{b}.exr"] = arr
+                    files[folder / f"{b}.png"] = linear_to_srgb8(arr)
+                files[folder / "ball.exr"] = out.balls[i]
+                files[folder / "ball.png"] = ball_preview(light.ball)
+                files[folder / "contact.png"] = contact_sheet(photo.rgb, out.balls[i], out.relit[i])
+                _write_or_fail(files, folder)
+            bar.set_postfix_str(p.name)
+            bar.update(1)
+    print(f"pilight: relit {len(todo) - failed} photo(s) under {len(lights)} light(s) into {args.out}", file=sys.stderr)
+    return 1 if failed else 0
+
+
+def cmd_ball(args) -> int:
+    from pilight.lights import ball_preview
+
+    if args.size < 8:
+        raise CliError(f"--size must be >= 8 pixels, got {args.size}", 2)
+    lights = _lights(args, args.size)
+    check_writable(args.out)
+    for light in lights:
+        _write_or_fail({args.out / f"{light.name}.exr": light.ball.permute(1, 2, 0).numpy(),
+                        args.out / f"{light.name}.png": ball_preview(light.ball)}, args.out)
+        print(f"{args.out / light.name}.png  {light.description}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return {"decompose": cmd_decompose, "relight": cmd_relight, "ball": cmd_ball}[args.command](args)
+    except CliError as exc:
+        print(f"pilight {args.command}: {exc}", file=sys.stderr)
+        return exc.code
+    except KeyboardInterrupt:
+        print(f"pilight {args.command}: interrupted; outputs written so far are complete, rerun to continue",
+              file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,403 @@
+"""The photo-level API: decompose and relight any picture with the two trained models.
+
+    from pilight.pipeline import PILightPipeline
+    from pilight import lights
+
+    pipe = PILightPipeline.from_pretrained("models")          # models/intrinsics + models/relight
+    parts = pipe.decompose("photo.jpg")                       # DecompositionOutput (numpy, input size)
+    out = pipe.relight("photo.jpg", [lights.named("left"), lights.named("right")])
+    out.relit[0]                                               # (H, W, 3) linear HDR under the first light
+    pipe.save_pretrained("my_pilight")                         # the same layout, plus pipeline.json
+
+It follows diffusers' conventions (``from_pretrained`` / ``save_pretrained`` of a folder, output
+dataclasses) so the models drop into other people's code. The inference itself is the stages'
+own: ``IntrinsicsTask.predict`` and ``RelightTask.predict``, built from each model's config.json
+(the params that trained it), so a saved model needs no params.yaml. This module adds what a
+photo needs around them: its size (processing resolution, outputs back at the input's size), a
+mask (all ones, or the photo's alpha: a photo has no ground-truth mask), the light balls, and a
+memory estimate checked before anything large is allocated.
+
+Stage 1 runs once per photo, however many lights stage 2 is asked for.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from pilight import atomic
+from pilight.lights import BALL_SIZE, Light
+from pilight.photo import Photo, as_photo, check_size, lcm, processing_size
+from pilight.params import DOMAINS, SamplingParams
+
+PIPELINE_FILE = "pipeline.json"
+STAGES = ("intrinsics", "relight")
+DEFAULT_RESOLUTION = 128  # the embedded default's render.resolution, used when no params.yaml says otherwise
+GIB = 1024 ** 3
+
+# Memory estimate, calibrated on 2 CPU cores with benchmarks/bench_cli.py (peak RSS above the
+# loaded models, embedded-default UNet, 256^2 and 512^2): the UNet's activations per batch item are
+# ACT_FLOATS_PER_CHANNEL_PIXEL floats per (channel x latent pixel) summed over its levels, and the
+# full-size arrays of a photo (decoded input, every output, their resized copies) HOST_FLOATS each.
+ACT_FLOATS_PER_CHANNEL_PIXEL = 40
+HOST_FLOATS_DECOMPOSE = 2 * (4 + 8)  # (rgb + mask + 8 output channels), times 2 for resize copies
+HOST_FLOATS_PER_LIGHT = 2 * 9  # relit, D, S
+MEMORY_FRACTION = 0.8  # default limit: this share of the machine's (or the GPU's) memory
+
+
+class PipelineError(ValueError):
+    """The pipeline cannot run as asked (models, sizes, memory); the message says what to change."""
+
+
+class MemoryLimitError(PipelineError):
+    """Processing would need more memory than allowed; raised before anything large is allocated."""
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """What the pipeline adds to the two models; saved as pipeline.json by ``save_pretrained``."""
+
+    processing_resolution: int = DEFAULT_RESOLUTION  # longer side the models run at; 0 = the photo's own size
+    ball_resolution: int = BALL_SIZE
+    seed: int = 42
+    intrinsics_sampling: SamplingParams = SamplingParams(mode="single_step", cfg_scale=1.0)
+    relight_sampling: SamplingParams = SamplingParams(mode="single_step", cfg_scale=1.5)
+
+    def to_json(self) -> dict:
+        return {"processing_resolution": self.processing_resolution, "ball_resolution": self.ball_resolution,
+                "seed": self.seed, "intrinsics_sampling": self.intrinsics_sampling.model_dump(mode="json"),
+                "relight_sampling": self.relight_sampling.model_dump(mode="json")}
+
+    @classmethod
+    def from_json(cls, d: dict, where: str) -> "PipelineConfig":
+        from pydantic import ValidationError
+
+        try:
+            return cls(processing_resolution=int(d["processing_resolution"]), ball_resolution=int(d["ball_resolution"]),
+                       seed=int(d["seed"]),
+                       intrinsics_sampling=SamplingParams.model_validate(d["intrinsics_sampling"]),
+                       relight_sampling=SamplingParams.model_validate(d["relight_sampling"]))
+        except (KeyError, TypeError, ValueError, ValidationError) as exc:
+            raise PipelineError(f"{where}: not a valid pipeline config ({exc})") from None
+
+    @classmethod
+    def from_params(cls, params_path: str | Path) -> "PipelineConfig":
+        """The defaults a DVC checkout implies: base.seed, render.resolution / ball_resolution,
+        infer_intrinsics and relight_infer (sampling). ParamsError when the file is invalid."""
+        from pilight.params import load_section
+
+        base, render = load_section("base", params_path), load_section("render", params_path)
+        ii, ri = load_section("infer_intrinsics", params_path), load_section("relight_infer", params_path)
+        keep = set(SamplingParams.model_fields)
+        return cls(processing_resolution=render.resolution, ball_resolution=render.ball_resolution, seed=base.seed,
+                   intrinsics_sampling=SamplingParams(**{k: getattr(ii, k) for k in keep}),
+                   relight_sampling=SamplingParams(**{k: getattr(ri, k) for k in keep}))
+
+
+@dataclass
+class DecompositionOutput:
+    """Stage 1 at the input's size. All maps linear, float32, (H, W, C)."""
+
+    albedo: np.ndarray      # (H, W, 3) in [0, 1]
+    normal: np.ndarray      # (H, W, 3) unit, camera space (x right, y up, z toward the camera); 0 off the mask
+    roughness: np.ndarray   # (H, W, 1) in [0, 1]
+    metallic: np.ndarray    # (H, W, 1) in [0, 1]
+    mask: np.ndarray | None  # (H, W) from the photo's alpha, or None (all of the picture)
+    processing_size: tuple[int, int]
+    # The processing-size tensors stage 2 is conditioned on, so relight() after decompose() reuses them.
+    conditions: dict[str, torch.Tensor] = field(default_factory=dict, repr=False)
+
+
+@dataclass
+class RelightOutput:
+    """Stage 2 at the input's size, one entry per light along the first axis. Linear HDR, float32."""
+
+    relit: np.ndarray               # (K, H, W, 3)
+    diffuse: np.ndarray | None      # (K, H, W, 3) D; None when the model has no decomposition branches
+    specular: np.ndarray | None     # (K, H, W, 3) S
+    balls: np.ndarray               # (K, S, S, 3) the light balls the model was given
+    lights: list[Light]
+    intrinsics: DecompositionOutput  # what stage 2 was conditioned on
+
+
+def pick_device(device: str = "auto") -> torch.device:
+    if device == "auto":
+        if torch.cuda.is_available():
+            return torch.device("cuda")
+        if getattr(torch.backends, "mps", None) is not None and torch.backends.mps.is_available():
+            return torch.device("mps")
+        return torch.device("cpu")
+    if device not in ("cpu", "cuda", "mps") and not device.startswith("cuda:"):
+        raise PipelineError(f"unknown device {device!r}; use auto, cpu, cuda or mps")
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise PipelineError(f"device {device!r} asked for, but this torch has no CUDA device (torch {torch.__version__})")
+    if device == "mps" and not (getattr(torch.backends, "mps", None) is not None and torch.backends.mps.is_available()):
+        raise PipelineError("device 'mps' asked for, but MPS is not available here")
+    return torch.device(device)
+
+
+def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(d, dict):
+        out: dict[str, Any] = {}
+        for k, v in d.items():
+            out.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+        return out
+    return {prefix: list(d) if isinstance(d, tuple) else d}
+
+
+def _format_validation(stage: str, exc) -> str:
+    return "; ".join(f"{'.'.join(map(str, (stage, *e['loc'])))} = {e.get('input')!r}: {e['msg']}" for e in exc.errors())
+
+
+def load_stage(folder: Path, stage: str, device: torch.device):
+    """One trained model (config.json + model.safetensors) -> its Task, in eval mode on ``device``,
+    and the params dict it was saved with."""
+    from pydantic import ValidationError
+
+    from pilight.params import IntrinsicsParams, RelightParams
+    from pilight.train.build import ModelError, load_model
+    from pilight.train.intrinsics import IntrinsicsTask
+    from pilight.train.relight import RelightTask
+
+    d = Path(folder) / stage
+    cfg, weights = d / "config.json", d / "model.safetensors"
+    if not cfg.is_file() or not weights.is_file():
+        missing = cfg if not cfg.is_file() else weights
+        raise PipelineError(f"{missing}: no trained {stage} model there. Run `dvc repro train_relight` first "
+                            "(it trains both stages into models/), or point --models at a folder holding "
+                            "intrinsics/ and relight/ (each config.json + model.safetensors)")
+    try:
+        saved = json.loads(cfg.read_text())["params"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise PipelineError(f"{cfg}: unreadable model config ({exc}); retrain with `dvc repro train_relight`") from None
+    raw = dict(saved)
+    if stage == "relight":
+        # Inference needs neither the training conditions' predictions nor the L_rec features'
+        # weights: only the UNet and its codec and conditioning.
+        raw.update(conditions="gt", rec_features="pooled-rgb", dinov2_path=None)
+    try:
+        p = (IntrinsicsParams if stage == "intrinsics" else RelightParams).model_validate(raw)
+    except ValidationError as exc:
+        raise PipelineError(f"{cfg}: {_format_validation(stage, exc)}") from None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # e.g. decomposition: false is reported by the stages, not here
+            task = IntrinsicsTask(p, d, seed=0) if stage == "intrinsics" else RelightTask(p, d, seed=0)
+        load_model(task.stack, d)
+    except ModelError as exc:
+        raise PipelineError(f"{exc} (the weights do not fit {cfg}: retrain with `dvc repro train_relight`)") from None
+    task.stack.model.eval().to(device)
+    if isinstance(task.stack.codec, torch.nn.Module):
+        task.stack.codec.to(device)
+    return task, saved
+
+
+class PILightPipeline:
+    """Stage 1 (photo -> albedo, normal, roughness, metallic) and stage 2 (+ light -> relit, D, S)."""
+
+    def __init__(self, intrinsics, relight, config: PipelineConfig = PipelineConfig(), device: str | torch.device = "cpu",
+                 saved_params: dict[str, dict] | None = None):
+        self.intrinsics, self.relight_task, self.config = intrinsics, relight, config
+        self.device = torch.device(device)
+        self.saved_params = saved_params or {}
+
+    # --- loading and saving -------------------------------------------------------------------
+    @classmethod
+    def from_pretrained(cls, folder: str | Path = "models", *, device: str = "auto", params: str | Path | None = None,
+                        **overrides) -> "PILightPipeline":
+        """Load ``folder/intrinsics`` and ``folder/relight``.
+
+        Settings come from ``folder/pipeline.json`` (written by ``save_pretrained``), else from
+        ``params`` (a params.yaml: render.resolution, infer_intrinsics, relight_infer), else the
+        defaults; ``overrides`` (PipelineConfig fields) win over all three."""
+        folder = Path(folder)
+        if not folder.is_dir():
+            raise PipelineError(f"{folder}: models folder not found. Run `dvc repro train_relight` first (it trains "
+                                "both stages into models/), or pass --models DIR")
+        config = PipelineConfig()
+        if (folder / PIPELINE_FILE).is_file():
+            try:
+                config = PipelineConfig.from_json(json.loads((folder / PIPELINE_FILE).read_text()), str(folder / PIPELINE_FILE))
+            except ValueError as exc:
+                raise PipelineError(f"{folder / PIPELINE_FILE}: {exc}") from None
+        elif params is not None and Path(params).is_file():
+            config = PipelineConfig.from_params(params)
+        config = replace(config, **overrides)
+        dev = pick_device(device) if isinstance(device, str) else torch.device(device)
+        t1, s1 = load_stage(folder, "intrinsics", dev)
+        t2, s2 = load_stage(folder, "relight", dev)
+        return cls(t1, t2, config, dev, {"intrinsics": s1, "relight": s2})
+
+    def save_pretrained(self, folder: str | Path) -> Path:
+        """``folder/intrinsics``, ``folder/relight`` (each model.safetensors + config.json, the layout
+        of the pipeline's models/) and ``folder/pipeline.json``; every file written, then renamed."""
+        from pilight.train.build import save_model
+
+        folder = Path(folder)
+        for stage, task in (("intrinsics", self.intrinsics), ("relight", self.relight_task)):
+            params = self.saved_params.get(stage) or task.p.model_dump(mode="json")
+            save_model(task.stack, folder / stage, params)
+        atomic.write_json(folder / PIPELINE_FILE, self.config.to_json(), sort_keys=True)
+        return folder
+
+    def stale_keys(self, params_path: str | Path) -> dict[str, list[str]]:
+        """Per stage, the params.yaml keys whose value differs from what the saved model was trained
+        with (the model is then older than params.yaml: `dvc repro` would retrain it)."""
+        from pilight.params import load_section
+
+        out = {}
+        for stage in STAGES:
+            now = _flatten(load_section(stage, params_path).model_dump(mode="json"))
+            then = _flatten(self.saved_params.get(stage, {}))
+            out[stage] = sorted(f"{stage}.{k}" for k in set(now) | set(then) if now.get(k) != then.get(k))
+        return out
+
+    # --- sizes and memory ---------------------------------------------------------------------
+    @property
+    def size_multiple(self) -> int:
+        """Processing sizes are multiples of this: each codec's factor times its UNet's downsampling."""
+        m = []
+        for task in (self.intrinsics, self.relight_task):
+            levels = len(task.stack.model.unet.config.block_out_channels)
+            m.append(task.stack.codec.factor * 2 ** (levels - 1))
+        return lcm(*m)
+
+    def processing_size(self, h: int, w: int, resolution: int | None = None) -> tuple[int, int]:
+        res = self.config.processing_resolution if resolution is None else resolution
+        return processing_size(h, w, res, self.size_multiple)
+
+    def _items(self, task, views: int, sp: SamplingParams, samples: int) -> int:
+        return samples * views * sp.ensemble * (2 if sp.cfg_scale != 1.0 else 1)
+
+    def _activation_bytes(self, task, ph: int, pw: int, items: int) -> int:
+        f = task.stack.codec.factor
+        chans = task.stack.model.unet.config.block_out_channels
+        per_item = sum(c * (ph // f) * (pw // f) / 4 ** i for i, c in enumerate(chans)) * ACT_FLOATS_PER_CHANNEL_PIXEL
+        return int(items * per_item * 4)
+
+    def estimate_memory(self, h: int, w: int, lights: int = 0, resolution: int | None = None) -> dict[str, int]:
+        """Bytes a photo of h x w needs: ``host`` (full-size arrays) and ``device`` (the UNet's
+        activations at the processing size); lights = 0 for decompose only."""
+        ph, pw = self.processing_size(h, w, resolution)
+        c = self.config
+        dev = self._activation_bytes(self.intrinsics, ph, pw, self._items(self.intrinsics, len(DOMAINS), c.intrinsics_sampling, 1))
+        if lights:
+            chunk = min(lights, c.relight_sampling.batch_size)
+            dev = max(dev, self._activation_bytes(self.relight_task, ph, pw, self._items(
+                self.relight_task, self.relight_task.V, c.relight_sampling, chunk)))
+        host = 4 * h * w * (HOST_FLOATS_DECOMPOSE + HOST_FLOATS_PER_LIGHT * lights)
+        if self.device.type == "cpu":
+            host += dev
+        return {"host": host, "device": dev if self.device.type != "cpu" else 0, "processing": (ph, pw)}
+
+    def memory_limits(self, max_memory: float | None = None) -> dict[str, int]:
+        """Bytes allowed on the host and on the device: ``max_memory`` (bytes) for both, else
+        MEMORY_FRACTION of the machine's RAM and of the GPU's memory."""
+        if max_memory is not None:
+            return {"host": int(max_memory), "device": int(max_memory)}
+        import psutil
+
+        host = int(psutil.virtual_memory().total * MEMORY_FRACTION)
+        device = host
+        if self.device.type == "cuda":
+            device = int(torch.cuda.get_device_properties(self.device).total_memory * MEMORY_FRACTION)
+        return {"host": host, "device": device}
+
+    def check_memory(self, h: int, w: int, lights: int = 0, name: str = "image", resolution: int | None = None,
+                     max_memory: float | None = None) -> None:
+        """MemoryLimitError, before anything is allocated, when ``estimate_memory`` exceeds the limits."""
+        est, lim = self.estimate_memory(h, w, lights, resolution), self.memory_limits(max_memory)
+        ph, pw = est["processing"]
+        for where in ("host", "device"):
+            if est[where] > lim[where]:
+                raise MemoryLimitError(
+                    f"{name}: {w}x{h} pixels, processed at {pw}x{ph}, needs about {est[where] / GIB:.1f} GiB of "
+                    f"{'memory' if where == 'host' else self.device.type + ' memory'}, over the limit of "
+                    f"{lim[where] / GIB:.1f} GiB. Use a smaller --resolution, or raise the limit with --max-memory GIB")
+
+    # --- inference ----------------------------------------------------------------------------
+    def _prepare(self, image, resolution: int | None, name: str) -> tuple[Photo, torch.Tensor, torch.Tensor]:
+        photo = as_photo(image, name)
+        h, w = photo.size
+        check_size(h, w, photo.name)
+        ph, pw = self.processing_size(h, w, resolution)
+        x = torch.from_numpy(photo.rgb).permute(2, 0, 1)[None]
+        x = _resize(x, (ph, pw)).clamp_min(0)
+        if photo.mask is None:
+            m = torch.ones(1, 1, ph, pw)
+        else:
+            m = (_resize(torch.from_numpy(photo.mask)[None, None], (ph, pw)) >= 0.5).float()
+        return photo, x, m
+
+    @torch.no_grad()
+    def decompose(self, image, *, resolution: int | None = None, name: str = "<image>") -> DecompositionOutput:
+        """A photo (path, PIL, numpy, tensor: ``photo.as_photo``) -> its intrinsics at the input's size."""
+        photo, x, m = self._prepare(image, resolution, name)
+        sp = self.config.intrinsics_sampling
+        gen = torch.Generator().manual_seed(self.config.seed)
+        pred = self.intrinsics.predict(x.to(self.device), DOMAINS, sp, gen)
+        cond = {d: pred[d].float().cpu() for d in DOMAINS}
+        cond["normal"] = cond["normal"] * m  # the contract: normals are 0 off the mask
+        cond["image"], cond["mask"] = x, m
+        return self._decomposition(photo, cond)
+
+    def _decomposition(self, photo: Photo, cond: dict[str, torch.Tensor]) -> DecompositionOutput:
+        h, w = photo.size
+        up = {d: _resize(cond[d], (h, w)) for d in DOMAINS}
+        n = F.normalize(up["normal"], dim=1, eps=1e-6)
+        if photo.mask is not None:
+            n = n * torch.from_numpy(photo.mask)[None, None]
+        hwc = lambda t: np.ascontiguousarray(t[0].permute(1, 2, 0).numpy(), dtype=np.float32)
+        return DecompositionOutput(albedo=hwc(up["albedo"].clamp(0, 1)), normal=hwc(n),
+                                   roughness=hwc(up["roughness"].clamp(0, 1)), metallic=hwc(up["metallic"].clamp(0, 1)),
+                                   mask=photo.mask, processing_size=tuple(cond["image"].shape[-2:]), conditions=cond)
+
+    @torch.no_grad()
+    def relight(self, image, lights: Light | Sequence[Light], *, resolution: int | None = None,
+                intrinsics: DecompositionOutput | None = None, name: str = "<image>") -> RelightOutput:
+        """A photo under each of ``lights``: stage 1 once (or ``intrinsics`` from ``decompose`` of the
+        same photo at the same resolution), then stage 2 for all lights in batches of
+        ``relight_sampling.batch_size``."""
+        lights = [lights] if isinstance(lights, Light) else list(lights)
+        if not lights:
+            raise PipelineError("relight needs at least one light")
+        photo, x, m = self._prepare(image, resolution, name)
+        if intrinsics is None:
+            intrinsics = self.decompose(photo, resolution=resolution, name=name)
+        elif intrinsics.processing_size != tuple(x.shape[-2:]):
+            raise PipelineError(f"intrinsics were computed at {intrinsics.processing_size}, but this call processes "
+                                f"at {tuple(x.shape[-2:])}; pass the same resolution")
+        cond = intrinsics.conditions
+        s = self.config.ball_resolution
+        balls = torch.stack([_resize(l.ball.float()[None], (s, s))[0] for l in lights]).clamp_min(0)
+        sp = self.config.relight_sampling
+        outs: dict[str, list[torch.Tensor]] = {}
+        for start in range(0, len(lights), sp.batch_size):
+            b = balls[start:start + sp.batch_size]
+            k = b.shape[0]
+            rep = lambda t: t.expand(k, *t.shape[1:]).to(self.device)
+            batch = {"image_a": rep(x), "ball_b": b.to(self.device), "mask": rep(m)}
+            intr = {d: rep(cond[d]) for d in DOMAINS}
+            gen = torch.Generator().manual_seed(self.config.seed)
+            pred = self.relight_task.predict(batch, sp, gen, intr)
+            for key, v in pred.items():
+                outs.setdefault(key, []).append(v.float().cpu())
+        h, w = photo.size
+        full = {key: _resize(torch.cat(v), (h, w)).clamp_min(0).permute(0, 2, 3, 1).contiguous().numpy()
+                for key, v in outs.items()}
+        return RelightOutput(relit=full["relit"], diffuse=full.get("diffuse"), specular=full.get("specular"),
+                             balls=balls.permute(0, 2, 3, 1).contiguous().numpy(), lights=lights, intrinsics=intrinsics)
+
+
+def _resize(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """Bilinear, antialiased when shrinking; the identity at the same size (bit-exact round trips)."""
+    if tuple(x.shape[-2:]) == tuple(size):
+        return x
+    return F.interpolate(x.float(), size=size, mode="bilinear", align_corners=False, antialias=True)
