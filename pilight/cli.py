@@ -351,8 +351,6 @@ def cmd_relight(args) -> int:
     names = output_names(photos)
     check_writable(args.out)
     pipe = _pipeline(args, "relight")
-    if pipe.config.ball_resolution != BALL_SIZE:
-        lights = _lights(args, pipe.config.ball_resolution)
     _check_photos(pipe, photos, len(lights), args.max_memory)
     branches = pipe.relight_task.branches
     pending = {p: [l for l in lights if args.overwrite or not _complete(relight_files(args.out / names[p] / l.name, branches))]
@@ -382,7 +380,7 @@ def cmd_relight(args) -> int:
                     files[folder / f"{b}.png"] = linear_to_srgb8(arr)
                 files[folder / "ball.exr"] = out.balls[i]
                 files[folder / "ball.png"] = ball_preview(light.ball)
-                files[folder / "contact.png"] = contact_sheet(photo.rgb, out.balls[i], out.relit[i])
+                files[folder / "contact.png"] = contact_sheet(photo.rgb, light.ball.permute(1, 2, 0).numpy(), out.relit[i])
                 _write_or_fail(files, folder)
             bar.set_postfix_str(p.name)
             bar.update(1)

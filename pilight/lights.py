@@ -40,7 +40,9 @@ from pilight.photo import PhotoError, as_photo, read_photo
 DIRECT_LEVEL = 2.0
 AMBIENT = 0.03  # the middle of render.light.ambient [0.01, 0.05]: shadowed sides are not pitch black
 NAMED = {"left": (-90.0, 30.0), "right": (90.0, 30.0), "top": (0.0, 90.0), "bottom": (0.0, -90.0), "front": (0.0, 0.0)}
-BALL_SIZE = 32  # the embedded default's render.ball_resolution; the pipeline resizes to its own
+# Lights are made at this size and area-averaged (antialiased) down to the model's ball size by the
+# pipeline, as Cycles' pixel filter averages the rendered training balls; the previews stay smooth.
+BALL_SIZE = 128
 
 
 class LightError(ValueError):

@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 
 from pilight import atomic
-from pilight.lights import BALL_SIZE, Light
+from pilight.lights import Light
 from pilight.photo import Photo, as_photo, check_size, lcm, processing_size
 from pilight.params import DOMAINS, SamplingParams
 
@@ -65,7 +65,7 @@ class PipelineConfig:
     """What the pipeline adds to the two models; saved as pipeline.json by ``save_pretrained``."""
 
     processing_resolution: int = DEFAULT_RESOLUTION  # longer side the models run at; 0 = the photo's own size
-    ball_resolution: int = BALL_SIZE
+    ball_resolution: int = 32  # the embedded default's render.ball_resolution
     seed: int = 42
     intrinsics_sampling: SamplingParams = SamplingParams(mode="single_step", cfg_scale=1.0)
     relight_sampling: SamplingParams = SamplingParams(mode="single_step", cfg_scale=1.5)
