@@ -435,7 +435,7 @@ def processing_size(h: int, w: int, resolution: int, multiple: int) -> tuple[int
     if resolution < 0:
         raise ValueError(f"resolution must be >= 0, got {resolution}")
     scale = 1.0 if resolution == 0 else resolution / max(h, w)
-    snap = lambda v: max(multiple, int(round(v * scale / multiple)) * multiple)
+    snap = lambda v: max(multiple, int(v * scale / multiple + 0.5) * multiple)  # half up, not to even
     return snap(h), snap(w)
 
 
