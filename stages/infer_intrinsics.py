@@ -70,11 +70,15 @@ def main(argv: list[str] | None = None) -> int:
 
     splits = [s for s in ip.splits if index["splits"].get(s, {}).get("shards")]
     info = {"domains": list(ip.domains), "sampling": ip.model_dump(mode="json"), "parts": task.stack.describe()}
-    out_index = write_predictions(args.out, {s: predictions(s) for s in splits}, info)
-    per_image = timing["seconds"] / max(timing["images"], 1)
-    # Timings vary run to run: they go to a metrics file, never into the (deterministic) output.
-    atomic.write_json(args.metrics, {"seconds_per_image": per_image, "images": timing["images"],
-                                     "samples": {s: v["samples"] for s, v in out_index["splits"].items()}})
+    try:  # shards are read (and verified) while predicting: damage there, or a full disk, is a message
+        out_index = write_predictions(args.out, {s: predictions(s) for s in splits}, info)
+        per_image = timing["seconds"] / max(timing["images"], 1)
+        # Timings vary run to run: they go to a metrics file, never into the (deterministic) output.
+        atomic.write_json(args.metrics, {"seconds_per_image": per_image, "images": timing["images"],
+                                         "samples": {s: v["samples"] for s, v in out_index["splits"].items()}})
+    except (DataError, ValueError, OSError) as exc:
+        print(f"infer_intrinsics: error: {exc}", file=sys.stderr)
+        return 1
     print(f"infer_intrinsics: {timing['images']} images, {per_image:.3f} s/image ({ip.mode}, {ip.steps} steps, "
           f"cfg {ip.cfg_scale}, ensemble {ip.ensemble}, domains {list(ip.domains)}) -> {args.out}")
     return 0

@@ -35,11 +35,20 @@ def main(argv: list[str] | None = None) -> int:
         print(f"train_intrinsics: {exc}", file=sys.stderr)
         return 2
     from pilight.train.intrinsics import IntrinsicsTask
+    from pilight.data.schema import DataError
+    from pilight.train.build import ModelError
+    from pilight.train.checkpoint import CheckpointError
     from pilight.train.stage import run_training_stage
 
-    return run_training_stage("train_intrinsics", "intrinsics", base, p,
-                              lambda: IntrinsicsTask(p, args.shards, seed=base.seed), shards=args.shards,
-                              data=[args.shards], out=args.out, checkpoints=args.checkpoints, live=args.live)
+    # Damage found once training runs (a shard, a checkpoint, a diverged loss, a full disk) is a
+    # message naming the file and exit 1, like damage found before it starts.
+    try:
+        return run_training_stage("train_intrinsics", "intrinsics", base, p,
+                                  lambda: IntrinsicsTask(p, args.shards, seed=base.seed), shards=args.shards,
+                                  data=[args.shards], out=args.out, checkpoints=args.checkpoints, live=args.live)
+    except (DataError, ModelError, CheckpointError, FloatingPointError, OSError) as exc:
+        print(f"train_intrinsics: error: {exc}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -39,13 +39,22 @@ def main(argv: list[str] | None = None) -> int:
         print(f"train_relight: {exc}", file=sys.stderr)
         return 2
     from pilight.train.relight import RelightTask
+    from pilight.data.schema import DataError
+    from pilight.train.build import ModelError
+    from pilight.train.checkpoint import CheckpointError
     from pilight.train.stage import run_training_stage
 
     data = [args.shards] + ([args.pred] if p.conditions != "gt" else [])  # predictions only when they are used
-    return run_training_stage("train_relight", "relight", base, p,
-                              lambda: RelightTask(p, args.shards, seed=base.seed, pred_dir=args.pred),
-                              shards=args.shards, data=data, out=args.out, checkpoints=args.checkpoints,
-                              live=args.live)
+    # Damage found once training runs (a shard, a checkpoint, a diverged loss, a full disk) is a
+    # message naming the file and exit 1, like damage found before it starts.
+    try:
+        return run_training_stage("train_relight", "relight", base, p,
+                                  lambda: RelightTask(p, args.shards, seed=base.seed, pred_dir=args.pred),
+                                  shards=args.shards, data=data, out=args.out, checkpoints=args.checkpoints,
+                                  live=args.live)
+    except (DataError, ModelError, CheckpointError, FloatingPointError, OSError) as exc:
+        print(f"train_relight: error: {exc}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

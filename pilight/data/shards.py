@@ -9,15 +9,23 @@ Output (one DVC out, written to a temporary sibling and renamed into place):
 ```
 Same renders + params + seed -> the same bytes: fixed tar mtime/owner/mode, sorted members,
 samples in (scene, view, light) order, deterministic EXR and JSON encoders.
+
+index.json records, per split, every shard's sample count and sha256 (``shard_checks``), and every
+reader verifies them when it is created (:func:`verify_shards`).  A tar cut at a member boundary
+is still a valid tar with fewer samples: it trained on 2 of 4 samples with exit 0.  Cut inside a
+member, it lost a sample's members and failed with a raw ``KeyError: 'meta.json'``.  Both now fail
+naming the shard.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import random
 import shutil
 import sys
+import tarfile
 import tempfile
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Literal
@@ -28,6 +36,7 @@ import webdataset as wds
 from torch.utils.data import DataLoader, IterableDataset
 from tqdm import tqdm
 
+from pilight import atomic
 from pilight.data import layout
 from pilight.data.exr import ExrError, read_exr, read_exr_bytes, write_exr
 from pilight.data.pairs import make_pairs, read_pairs, write_pairs
@@ -59,16 +68,21 @@ def write_shards(renders: Path, out: Path, params: ShardParams, *, seed: int,
         raise RenderFolderError(f"{renders / 'manifest.json'}: 'scenes' must be a list of objects")
     splits = check_splits(scenes, where=str(renders / "manifest.json"))
     check_hdri_holdout(scenes, heldout_hdris, where=str(renders / "manifest.json"))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    tmp = None
     try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
         index = _write_all(renders, tmp, manifest, splits, params, seed, progress)
         write_splits(tmp, splits, hdri_summary(scenes))
         (tmp / "index.json").write_text(json.dumps(index, indent=1, sort_keys=True) + "\n")
-        os.chmod(tmp, 0o755)  # mkdtemp makes it 0700
+        os.chmod(tmp, atomic.dir_mode())  # mkdtemp makes it 0700 whatever the umask
         _swap_into_place(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+    except BaseException as exc:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(exc, OSError):  # a full disk names no file: say which output could not be written
+            prefix = os.path.join(os.fspath(out.parent), f".{out.name}.")
+            raise atomic.path_error(exc, out, lambda name: name.startswith(prefix)) from exc
         raise
     return index
 
@@ -90,11 +104,17 @@ def _write_all(renders, tmp, manifest, splits, params, seed, progress) -> dict[s
             write_pairs(tmp / "pairs" / f"{split}.tsv", make_pairs(
                 views, seed=seed, pairs_per_view=params.pairs_per_view, identity=params.identity_pairs))
             shards: list[str] = []
+            checks: dict[str, dict[str, Any]] = {}
             if views:
                 (tmp / split).mkdir()
+
+                def finished(f: str) -> None:  # called as each shard closes, while writer.count is its count
+                    shards.append(Path(f).name)
+                    checks[Path(f).name] = {"samples": writer.count, "sha256": sha256_file(Path(f))}
+
                 writer = wds.ShardWriter(
                     str(tmp / split / f"{split}-%06d.tar"), maxcount=sys.maxsize, maxsize=float("inf"),
-                    post=lambda f: shards.append(Path(f).name), verbose=0, encoder=False,
+                    post=finished, verbose=0, encoder=False,
                     mtime=TAR_MTIME, user=TAR_OWNER, group=TAR_OWNER, mode=0o444)
                 with writer:
                     for sid in splits[split]:
@@ -103,7 +123,7 @@ def _write_all(renders, tmp, manifest, splits, params, seed, progress) -> dict[s
                             bar.update(len(group))
             index["splits"][split] = {
                 "scenes": len(splits[split]), "views": len(views),
-                "samples": sum(n for _, _, n in views), "shards": shards}
+                "samples": sum(n for _, _, n in views), "shards": shards, "shard_checks": checks}
     index["sizes"] = {k: list(v) for k, v in sorted(sizes.items())}
     return index
 
@@ -222,7 +242,71 @@ def read_index(shard_dir: Path) -> dict[str, Any]:
     path = Path(shard_dir) / "index.json"
     if not path.is_file():
         raise DataError(f"{path}: not found; run the shard stage first")
-    return json.loads(path.read_text())
+    try:
+        index = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise DataError(f"{path}: unreadable ({exc}); rerun the shard stage") from None
+    if not isinstance(index, dict) or not isinstance(index.get("splits"), dict):
+        raise DataError(f"{path}: want an object with 'splits'; rerun the shard stage")
+    return index
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+# Shards already verified in this process, by (path, size, mtime, inode, recorded sha256): the
+# training tasks build a dataset per epoch, and hashing the data again each time costs a full read.
+_VERIFIED: set[tuple] = set()
+
+
+def verify_shards(folder: Path, split: str, entry: dict[str, Any], index_path: Path) -> None:
+    """DataError naming the shard unless every shard of ``entry`` (one split of index.json) exists
+    and matches its recorded sample count and sha256.  An index written before the checks were
+    recorded has none (``shard_checks`` absent): its shards are read unverified, as before."""
+    checks = entry.get("shard_checks")
+    if checks is None:
+        return
+    if not isinstance(checks, dict) or sorted(checks) != sorted(entry["shards"]):
+        raise DataError(f"{index_path}: split {split!r}: 'shard_checks' does not list exactly its shards; "
+                        "rerun the shard stage")
+    recorded = sum(c["samples"] for c in checks.values())
+    if "samples" in entry and recorded != entry["samples"]:
+        raise DataError(f"{index_path}: split {split!r}: its shards hold {recorded} samples but it says "
+                        f"{entry['samples']}; rerun the shard stage")
+    for name in entry["shards"]:
+        path = Path(folder) / name
+        want = checks[name]
+        try:
+            st = path.stat()
+        except FileNotFoundError:
+            raise DataError(f"{path}: shard missing ({index_path} lists it with {want['samples']} samples); "
+                            "rerun the shard stage") from None
+        key = (str(path.resolve()), st.st_size, st.st_mtime_ns, st.st_ino, want["sha256"])
+        if key in _VERIFIED:
+            continue
+        if sha256_file(path) != want["sha256"]:
+            found = count_samples(path)
+            raise DataError(f"{path}: damaged shard: sha256 differs from {index_path}; {found} of its "
+                            f"{want['samples']} samples readable; rerun the shard stage")
+        _VERIFIED.add(key)
+
+
+def count_samples(path: Path) -> str:
+    """How many complete-looking samples (distinct keys) a tar holds, for messages; 'none' if it is unreadable."""
+    keys: set[str] = set()
+    try:
+        with tarfile.open(path) as tf:
+            for member in tf:
+                if member.isfile():
+                    keys.add(member.name.split(".", 1)[0])
+    except (tarfile.TarError, OSError, EOFError):
+        pass
+    return str(len(keys)) if keys else "none"
 
 
 class ShardDataset(IterableDataset):
@@ -245,6 +329,7 @@ class ShardDataset(IterableDataset):
         entry = read_index(shard_dir)["splits"].get(split)
         if not entry or not entry["shards"]:
             raise DataError(f"{shard_dir}: split {split!r} has no shards")
+        verify_shards(Path(shard_dir) / split, split, entry, Path(shard_dir) / "index.json")
         self.urls = [str(Path(shard_dir) / split / name) for name in entry["shards"]]
         self.num_samples = entry["samples"]
         self.task, self.shuffle, self.repeat, self.seed, self.buffer = task, shuffle, repeat, seed, buffer
@@ -287,7 +372,7 @@ class ShardDataset(IterableDataset):
             yield self._decode(item)
 
     def _units(self, urls: list[str]) -> Iterator[Any]:
-        samples = wds.tarfile_samples({"url": u} for u in urls)
+        samples = _checked_samples(urls, self.task)
         if self.task == "intrinsics":
             yield from samples
             return
@@ -327,6 +412,28 @@ class ShardDataset(IterableDataset):
             out["ball_lambertian_b"] = _tensor(sb, "ball_lambertian")
         out.update({k: _tensor(sb, k) for k in INTRINSICS})
         return out
+
+
+# Members every sample of a task needs; one lost to a cut tar must be named, not a KeyError later.
+_REQUIRED = {"intrinsics": ("meta.json", "image.exr", *(f"{k}.exr" for k in INTRINSICS)),
+             "relight": ("meta.json", "image.exr", "ball.exr", "diffuse.exr", "specular.exr",
+                         *(f"{k}.exr" for k in INTRINSICS))}
+
+
+def _checked_samples(urls: list[str], task: str) -> Iterator[dict]:
+    """webdataset's samples of ``urls``, each with every member ``task`` reads (DataError otherwise,
+    naming the shard and the sample), tar errors turned into DataErrors naming the shard."""
+    url = urls[0] if urls else ""
+    try:
+        for s in wds.tarfile_samples({"url": u} for u in urls):
+            url = s.get("__url__", url)
+            missing = [m for m in _REQUIRED[task] if m not in s]
+            if missing:
+                raise DataError(f"{url}: sample {s.get('__key__')!r} lacks {missing}: the shard is cut or "
+                                "damaged; rerun the shard stage")
+            yield s
+    except (tarfile.TarError, OSError, EOFError) as exc:
+        raise DataError(f"{url}: unreadable shard ({type(exc).__name__}: {exc}); rerun the shard stage") from None
 
 
 def _buffer_shuffle(items: Iterator[Any], size: int, rng: random.Random) -> Iterator[Any]:

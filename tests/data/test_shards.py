@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import stat
 import subprocess
 import sys
+import tarfile
 from pathlib import Path
 
 import numpy as np
@@ -312,3 +315,100 @@ def test_shard_params_validation():
         ShardParams(pairs_per_view=-1)
     with pytest.raises(ValidationError, match="maxsize must be a positive"):
         ShardParams(maxsize=0)
+
+
+# --- issue 18: shards verified against index.json -------------------------------------------
+def _first_train_shard(shards: Path) -> tuple[Path, list[tarfile.TarInfo]]:
+    path = shards / "train" / read_index(shards)["splits"]["train"]["shards"][0]
+    with tarfile.open(path) as tf:
+        return path, tf.getmembers()
+
+
+def _writable(path: Path) -> None:
+    os.chmod(path, 0o644)  # the writer makes shards read-only; the tests damage them on purpose
+
+
+def test_index_records_count_and_sha256_per_shard(shards):
+    for split, entry in read_index(shards)["splits"].items():
+        checks = entry["shard_checks"]
+        assert sorted(checks) == sorted(entry["shards"])
+        assert sum(c["samples"] for c in checks.values()) == entry["samples"]
+        for name, c in checks.items():
+            path = shards / split / name
+            assert c["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
+            with tarfile.open(path) as tf:
+                assert len({m.name.split(".", 1)[0] for m in tf.getmembers()}) == c["samples"]
+
+
+def test_shard_cut_at_a_member_boundary_fails_by_name(shards):
+    path, members = _first_train_shard(shards)
+    keys = sorted({m.name.split(".", 1)[0] for m in members})
+    assert len(keys) >= 3
+    third = next(m for m in members if m.name.startswith(keys[2] + "."))
+    _writable(path)
+    with open(path, "r+b") as fh:  # still a valid tar, with the first two samples only
+        fh.truncate(third.offset)
+    # Before: the loader streamed 2 of the samples and training ended with exit 0.
+    with pytest.raises(DataError, match=rf"{path}: damaged shard: sha256 differs .* 2 of its \d+ samples"):
+        intrinsics_dataset(shards, "train")
+
+
+def test_shard_cut_mid_member_fails_by_name(shards):
+    path, members = _first_train_shard(shards)
+    meta = next(m for m in members if m.name.endswith(".meta.json"))
+    _writable(path)
+    with open(path, "r+b") as fh:
+        fh.truncate(meta.offset_data + 5)
+    with pytest.raises(DataError, match=rf"{path}: damaged shard"):
+        relight_dataset(shards, "train")
+
+
+@pytest.mark.parametrize("where", ["header", "data"])
+def test_cut_shard_is_named_at_read_time_without_recorded_checks(shards, where):
+    # An index.json written before the checks existed: the reader itself names the shard.
+    index = read_index(shards)
+    for entry in index["splits"].values():
+        entry.pop("shard_checks", None)
+    (shards / "index.json").write_text(json.dumps(index))
+    path, members = _first_train_shard(shards)
+    second = sorted({m.name.split(".", 1)[0] for m in members})[1]
+    # Its second member: the first one survives, meta.json (sorted last but one) does not.
+    member = [m for m in members if m.name.startswith(second + ".")][1]
+    _writable(path)
+    with open(path, "r+b") as fh:
+        fh.truncate(member.offset + 100 if where == "header" else member.offset_data + 5)
+    # Before: a raw KeyError: 'meta.json' (cut in a header) or tarfile.ReadError (cut in the data).
+    with pytest.raises(DataError, match=rf"{path}: (sample '{second}' lacks|unreadable shard)"):
+        list(intrinsics_dataset(shards, "train", shuffle=False))
+
+
+def test_missing_shard_fails_by_name(shards):
+    path, _ = _first_train_shard(shards)
+    path.unlink()
+    with pytest.raises(DataError, match=rf"{path}: shard missing"):
+        eval_dataset(shards, "train", "intrinsics")
+
+
+def test_shard_folder_follows_the_umask(renders, tmp_path):
+    old = os.umask(0o027)
+    try:
+        write_shards(renders, tmp_path / "s", ShardParams(maxcount=4), seed=SEED)
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "s").stat().st_mode) == 0o750  # mkdtemp alone gives 0700
+
+
+def test_full_disk_names_the_shard_folder(renders, tmp_path, monkeypatch):
+    import errno
+
+    import pilight.data.shards as shards_mod
+
+    def full(*args, **kw):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(shards_mod, "write_splits", full)
+    out = tmp_path / "s"
+    with pytest.raises(OSError, match="No space left on device") as info:
+        write_shards(renders, out, ShardParams(maxcount=4), seed=SEED)
+    assert str(out) in str(info.value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["renders"]

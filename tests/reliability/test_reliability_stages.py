@@ -1,0 +1,82 @@
+"""Issue 18: the stages exit 1 with a message naming the file, not a traceback, on damage found
+while they run (a cut shard, a bad run.json, a truncated model).  Called in-process (``main(argv)``)
+to stay fast; the scripts do nothing else around ``main``."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import tarfile
+from pathlib import Path
+
+import pytest
+from accelerate.state import AcceleratorState
+
+from pilight.data.shards import read_index
+from tests.stage_scripts import REPO, params_file, tiny_shards
+
+TINY = {"unet": {"block_out_channels": [8, 8], "layers_per_block": 1, "attention_head_dim": 4, "cross_attention_dim": 8},
+        "codec": {"kind": "pixel", "factor": 4},
+        "train": {"steps": 2, "batch_size": 2, "checkpoint_every": 1, "image_every": 100, "log_every": 1,
+                  "warmup_steps": 0}}
+
+
+def _main(script: str):
+    spec = importlib.util.spec_from_file_location(f"stage_{script}", REPO / "stages" / f"{script}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.main
+
+
+@pytest.fixture(autouse=True)
+def _fresh_accelerate_state():
+    AcceleratorState._reset_state(True)
+    yield
+    AcceleratorState._reset_state(True)
+
+
+@pytest.fixture
+def setup(tmp_path: Path):
+    shards = tiny_shards(tmp_path)
+    params = params_file(tmp_path, {"intrinsics": TINY, "infer_intrinsics": {"steps": 1, "splits": ["train"]}})
+    return shards, params
+
+
+def _train_args(tmp_path: Path, shards: Path, params: Path) -> list[str]:
+    return ["--params", str(params), "--shards", str(shards), "--out", str(tmp_path / "model"),
+            "--checkpoints", str(tmp_path / "ckpt"), "--live", str(tmp_path / "live")]
+
+
+def test_cut_shard_fails_training_by_name(setup, tmp_path, capsys):
+    shards, params = setup
+    path = shards / "train" / read_index(shards)["splits"]["train"]["shards"][0]
+    with tarfile.open(path) as tf:
+        last = tf.getmembers()[-1]
+    os.chmod(path, 0o644)
+    with open(path, "r+b") as fh:
+        fh.truncate(last.offset)  # a valid tar, one member short
+    rc = _main("train_intrinsics")(_train_args(tmp_path, shards, params))
+    err = capsys.readouterr().err
+    assert rc == 1 and f"{path}: damaged shard" in err and "Traceback" not in err, err
+    assert not (tmp_path / "model").exists()
+
+
+def test_bad_run_json_fails_training_with_a_message(setup, tmp_path, capsys):
+    shards, params = setup
+    (tmp_path / "ckpt").mkdir()
+    (tmp_path / "ckpt" / "step_0000001").mkdir()  # a checkpoint whose run cannot be told
+    (tmp_path / "ckpt" / "run.json").write_text("{truncated")
+    rc = _main("train_intrinsics")(_train_args(tmp_path, shards, params))
+    err = capsys.readouterr().err
+    assert rc == 1 and f"{tmp_path / 'ckpt' / 'run.json'}: unreadable" in err, err
+
+
+def test_truncated_model_fails_inference_with_a_message(setup, tmp_path, capsys):
+    shards, params = setup
+    (tmp_path / "model").mkdir()
+    (tmp_path / "model" / "model.safetensors").write_bytes(b"\x10\x00\x00\x00\x00\x00\x00\x00{\"a\":")
+    rc = _main("infer_intrinsics")(["--params", str(params), "--shards", str(shards), "--model", str(tmp_path / "model"),
+                                    "--out", str(tmp_path / "pred"), "--metrics", str(tmp_path / "m.json")])
+    err = capsys.readouterr().err
+    assert rc == 1 and f"{tmp_path / 'model' / 'model.safetensors'}: unreadable safetensors file" in err, err
+    assert not (tmp_path / "pred").exists()
