@@ -46,8 +46,13 @@ def write_exr(path: str | os.PathLike, array: np.ndarray, *, half: bool) -> None
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
 
     def write(tmp: str) -> None:
-        with OpenEXR.File(header, channels) as f:
-            f.write(tmp)
+        try:
+            with OpenEXR.File(header, channels) as f:
+                f.write(tmp)
+        except OSError:
+            raise
+        except Exception as exc:  # OpenEXR raises a bare Exception (a full disk among others) naming the temporary
+            raise ExrError(f"{path}: cannot write EXR ({str(exc).replace(tmp, str(path))})") from exc
 
     atomic.write_with(path, write)
 

@@ -78,3 +78,29 @@ def test_an_error_naming_an_input_is_kept(tmp_path):
     with pytest.raises(FileNotFoundError) as info:
         atomic.write_with(tmp_path / "out.txt", lambda tmp: Path(tmp).write_bytes(missing.read_bytes()))
     assert info.value.filename == str(missing)
+
+
+def test_exr_write_failure_names_the_output(tmp_path, monkeypatch):
+    import numpy as np
+    import OpenEXR
+
+    from pilight.data import exr
+
+    class Full:  # what OpenEXR raises when the disk fills: a bare Exception naming the temporary
+        def __init__(self, *a, **kw):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *a):
+            return False
+
+        def write(self, name):
+            raise Exception(f"Cannot write image file \"{name}\". No space left on device.")
+
+    monkeypatch.setattr(OpenEXR, "File", Full)
+    target = tmp_path / "a.exr"
+    with pytest.raises(exr.ExrError, match=rf"{target}: cannot write EXR .*No space left on device"):
+        exr.write_exr(target, np.zeros((2, 2, 3), np.float32), half=True)
+    assert list(tmp_path.iterdir()) == []
