@@ -76,8 +76,13 @@ def sha256_file(path: Path) -> str:
 
 
 def non_finite_tensors(tensors: dict[str, torch.Tensor]) -> list[str]:
-    """Names of the floating-point tensors that hold NaN or Inf."""
-    return [k for k, t in tensors.items() if t.is_floating_point() and not bool(torch.isfinite(t).all())]
+    """Names of the floating-point tensors that hold NaN or Inf (one device sync for all of them)."""
+    names = [k for k, t in tensors.items() if t.is_floating_point()]
+    if not names:
+        return []
+    device = tensors[names[0]].device
+    ok = torch.stack([torch.isfinite(tensors[k]).all().to(device) for k in names]).cpu().tolist()
+    return [k for k, good in zip(names, ok) if not good]
 
 
 def checkpoint_path(checkpoint_dir: Path, step: int) -> Path:
@@ -301,7 +306,7 @@ def save_checkpoint(
     d = Path(checkpoint_dir)
     bad = non_finite_tensors(model.state_dict())
     if ema is not None:
-        bad += [f"ema shadow {i}" for i, t in enumerate(ema.shadow_params) if not bool(torch.isfinite(t).all())]
+        bad += [f"ema {k}" for k in non_finite_tensors({str(i): t for i, t in enumerate(ema.shadow_params)})]
     if bad:
         raise NonFiniteError(f"step {step}: weights hold NaN/Inf ({', '.join(bad[:3])}{', ...' if len(bad) > 3 else ''}); "
                              f"not checkpointed, so {d} keeps its last good checkpoint (lower the lr?)")

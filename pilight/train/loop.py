@@ -151,9 +151,9 @@ def _check_finite_before_saving(acc: Accelerator, win_loss: torch.Tensor, win_n:
         pending = acc.reduce(win_loss / win_n, "mean").item()
         if not math.isfinite(pending):
             raise ckpt.NonFiniteError(f"non-finite loss {pending} at step {step}; not checkpointed")
-    bad = [i for i, p in enumerate(params) if not bool(torch.isfinite(p).all())]
+    bad = ckpt.non_finite_tensors({str(i): p.detach() for i, p in enumerate(params)})
     if ema is not None:
-        bad += [f"ema {i}" for i, t in enumerate(ema.shadow_params) if not bool(torch.isfinite(t).all())]
+        bad += [f"ema {k}" for k in ckpt.non_finite_tensors({str(i): t for i, t in enumerate(ema.shadow_params)})]
     if bad:
         raise ckpt.NonFiniteError(f"weights hold NaN/Inf after step {step} (trainable tensor(s) {bad[:3]}); "
                                   "not checkpointed (lower the lr?)")
