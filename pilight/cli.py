@@ -66,8 +66,9 @@ def _light_options(p: argparse.ArgumentParser) -> None:
 
 
 def _model_options(p: argparse.ArgumentParser, stage: str) -> None:
-    g = p.add_argument_group("model and sampling (defaults: params.yaml's "
-                             f"{'infer_intrinsics' if stage == 'intrinsics' else 'relight_infer'}, or the saved pipeline's)")
+    what = ("stage 1; defaults: params.yaml's infer_intrinsics" if stage == "intrinsics" else
+            "stage 2; defaults: params.yaml's relight_infer (stage 1 runs with infer_intrinsics)")
+    g = p.add_argument_group(f"model and sampling ({what}, or a saved pipeline's pipeline.json)")
     g.add_argument("--models", type=Path, default=Path("models"),
                    help="folder with intrinsics/ and relight/ (default: models, where `dvc repro` puts them)")
     g.add_argument("--params", type=Path, default=Path("params.yaml"),

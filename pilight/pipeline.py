@@ -42,10 +42,12 @@ STAGES = ("intrinsics", "relight")
 DEFAULT_RESOLUTION = 128  # the embedded default's render.resolution, used when no params.yaml says otherwise
 GIB = 1024 ** 3
 
-# Memory estimate, calibrated on 2 CPU cores with benchmarks/bench_cli.py (peak RSS above the
-# loaded models, embedded-default UNet, 256^2 and 512^2): the UNet's activations per batch item are
-# ACT_FLOATS_PER_CHANNEL_PIXEL floats per (channel x latent pixel) summed over its levels, and the
-# full-size arrays of a photo (decoded input, every output, their resized copies) HOST_FLOATS each.
+# Memory estimate: the UNet's activations per batch item are ACT_FLOATS_PER_CHANNEL_PIXEL floats
+# per (channel x latent pixel) summed over its levels, and the full-size arrays of a photo (decoded
+# input, every output, their resized copies) HOST_FLOATS each. Checked against
+# benchmarks/bench_cli.py (peak RSS above the loaded models, embedded-default UNets, 2 CPU cores):
+# the estimate is 1.3-2.6x the measured peaks at 256^2 and 512^2. It errs high on purpose: the guard
+# must refuse a photo that would not fit, and a refused photo can still be forced with --max-memory.
 ACT_FLOATS_PER_CHANNEL_PIXEL = 40
 HOST_FLOATS_DECOMPOSE = 2 * (4 + 8)  # (rgb + mask + 8 output channels), times 2 for resize copies
 HOST_FLOATS_PER_LIGHT = 2 * 9  # relit, D, S
