@@ -168,6 +168,10 @@ class RenderParams(_Section):
     ball_min_samples: int = Field(4, ge=0, description="adaptive sampling's minimum for the ball (0 = Cycles' automatic)")
     assets: tuple[str, ...] = Field((), description=".glb/.gltf/.obj/.blend files placed beside or instead of procedural shapes")
     assets_only: bool = Field(False, description="true: scenes hold only the listed assets, no procedural shapes")
+    camera_backdrop: float | None = Field(None, ge=0.0, le=10.0, allow_inf_nan=False, description=(
+        "linear gray radiance that CAMERA rays see behind the scene (the lighting HDRI stays hidden from "
+        "them but still lights the scene), so the background is the same for every light of a view; "
+        "null = camera rays see the lighting world (the paper's renders)"))
 
     @field_validator("resolution")
     @classmethod

@@ -200,3 +200,24 @@ def test_shared_pattern_drives_colour_roughness_and_metal_together(tmp_path, bpy
     assert (w < 0.01).mean() > 0.1 and (w > 0.99).mean() > 0.1, "both sub-materials are visible"
     np.testing.assert_allclose(view["albedo"][inner], (1 - w) * np.asarray(a) + w * np.asarray(b), atol=2e-3)
     np.testing.assert_allclose(view["roughness"][inner][:, :1], 0.2 + 0.6 * w, atol=2e-3)
+
+
+def test_camera_backdrop_is_the_same_behind_the_scene_for_every_light_while_the_hdri_still_lights_it(tmp_path, bpy_render):
+    """render.camera_backdrop: camera rays that miss the scene see the constant, whatever the light;
+    the lighting HDRI still lights the sphere (its image differs between a dim and a bright HDRI)."""
+    hdri = lambda strength: {"name": "forest", "strength": strength, "rotation_deg": 0.0}
+    lights = [{"points": [], "hdri": hdri(0.3), "ambient": 0.02}, {"points": [], "hdri": hdri(1.0), "ambient": 0.05}]
+    spec = controlled_spec([sphere(principled(RED, 0.5, 0.0), scale=0.6)], lights)
+    bpy_render(spec, tmp_path, tiny_params(camera_backdrop=0.1, cycles=dict(samples=16, adaptive_threshold=0.0)),
+               verify=False)
+    view = _maps(tmp_path)
+    a, b = _maps(tmp_path, 0)["image"], _maps(tmp_path, 1)["image"]
+    mask = view["mask"].reshape(a.shape[:2])
+    background = mask == 0
+    corners = np.zeros_like(background)
+    corners[:4, :4] = corners[:4, -4:] = True  # far from the sphere: no pixel-filter bleed
+    np.testing.assert_allclose(a[corners], 0.1, rtol=1e-3)
+    np.testing.assert_array_equal(a[corners], b[corners])
+    inside = _interior(view["mask"])
+    assert b[inside].mean() > 1.5 * a[inside].mean()  # the brighter HDRI (and ambient) light the sphere more
+    assert background.any()
