@@ -121,7 +121,7 @@ def flip_check(task, batches: list[dict], ip, seed: int, visible_above: float = 
     If the shading follows N, the left/right asymmetry changes sign."""
     import torch
 
-    from pilight.eval.relight import lr_asymmetry
+    from pilight.eval.light_following import lr_asymmetry
     from pilight.train.relight import choose_intrinsics
 
     a, b = [], []

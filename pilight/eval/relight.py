@@ -10,6 +10,8 @@ Baselines:
 - copy input: I_relit = image a (what a model ignoring the target light scores);
 - analytic A * D_calc: ground-truth albedo times the Lambertian lookup of the TARGET ball with the
   ground-truth normals, times (1 - metallic) as in training (no specular, no shadows, black background).
+Light-following (pilight.eval.light_following): change_r2 of every method on the full image and on
+the mask, over the cross-light pairs (copying scores 0, the ground truth 1).
 Also: the decomposition residual mean |I_relit - A D_pred - S_pred| (linear HDR, ground-truth A)
 of the model and of the ground truth (float16 shards: ~1e-3), PSNR of D_pred and S_pred, and the
 paper's appendix check on the analytic shading: flipping the x channel of N should flip which
@@ -31,7 +33,8 @@ from pilight.data.schema import DataError
 from pilight.data.shards import eval_dataset, make_loader
 from pilight.eval.metrics import psnr_per_image, ssim_per_image
 from pilight.physics import compose
-from pilight.train.relight import diffuse_calculated
+from pilight.eval.light_following import ChangeR2, lr_asymmetry
+from pilight.physics.calculated import diffuse_calculated
 
 METHODS = ("model", "copy_input", "analytic_ad")
 
@@ -39,21 +42,6 @@ METHODS = ("model", "copy_input", "analytic_ad")
 def tonemap01(x: torch.Tensor) -> torch.Tensor:
     """Linear HDR -> [0, 1] display values: (schema.to_model + 1) / 2."""
     return (schema.to_model("image", x.float()) + 1) / 2
-
-
-def lr_asymmetry(d: torch.Tensor, normal: torch.Tensor, mask: torch.Tensor, thr: float = 0.2,
-                 eps: float = 1e-6) -> torch.Tensor:
-    """(R - L) / (R + L) per image (B,): R, L = mean luminance of `d` over masked pixels whose
-    (original, unflipped) normal faces right (n_x > thr) or left (n_x < -thr).
-
-    Classifying by the normal, not by image halves, makes the measure independent of where the
-    objects sit in the frame: if shading follows N, flipping N_x swaps R and L, so the sign flips."""
-    lum = d.float().mean(1, keepdim=True)
-    m = mask.float() > 0.5
-    right, left = m & (normal[:, :1] > thr), m & (normal[:, :1] < -thr)
-    mean = lambda sel: (lum * sel).flatten(1).sum(1) / sel.flatten(1).sum(1).clamp_min(1)
-    r, l = mean(right), mean(left)
-    return (r - l) / (r + l + eps)
 
 
 def grid_row(ball: torch.Tensor, image_a: torch.Tensor, image_b: torch.Tensor, pred: dict[str, torch.Tensor],
@@ -81,6 +69,7 @@ def evaluate_relight(shard_dir: Path, relit_dir: Path, split: str = "test", lpip
     resid = {"model": [], "ground_truth": []}
     flip_a, flip_b = [], []
     grid_rows: list[torch.Tensor] = []
+    change: dict[str, ChangeR2] = {}
     n = 0
     for b in make_loader(eval_dataset(shard_dir, split, "relight"), 8):
         keys = b["key"]
@@ -95,10 +84,12 @@ def evaluate_relight(shard_dir: Path, relit_dir: Path, split: str = "test", lpip
         for i in torch.nonzero(~same).flatten().tolist()[:max(0, grid_pairs - len(grid_rows))]:
             grid_rows.append(grid_row(b["ball_b"][i], b["image_a"][i], b["image_b"][i], {k: v[i] for k, v in pred.items()},
                                       b["diffuse_b"][i], b["specular_b"][i]))
-        gt = tonemap01(b["image_b"])
+        gt, u_in = tonemap01(b["image_b"]), tonemap01(b["image_a"])
         cands = {"model": pred["relit"], "copy_input": b["image_a"], "analytic_ad": b["albedo"] * d_calc}
         for name, img in cands.items():
             p = tonemap01(img)
+            if (~same).any():
+                change.setdefault(name, ChangeR2()).update(p[~same], gt[~same], u_in[~same], b["mask"][~same])
             for setting, sel in (("relight", ~same), ("reconstruction", same)):
                 if sel.any():
                     r = rows[setting].setdefault(name, {"psnr": [], "ssim": [], "lpips": []})
@@ -126,6 +117,7 @@ def evaluate_relight(shard_dir: Path, relit_dir: Path, split: str = "test", lpip
     for setting in ("relight", "reconstruction"):
         out[setting] = {name: {m: mean(v) for m, v in r.items()} | {"pairs": len(torch.cat(r["psnr"]))}
                         for name, r in rows[setting].items()}
+    out["change_r2"] = {name: c.compute() for name, c in change.items()}
     out["components_psnr"] = {k: mean(r["psnr"]) for k, r in rows.get("components", {}).items()}
     out["residual_abs_mean"] = {k: mean(v) for k, v in resid.items()}
     a, c = torch.cat(flip_a), torch.cat(flip_b)
@@ -155,6 +147,9 @@ def markdown_table(result: dict, split: str) -> str:
     comp = result["components_psnr"]
     res = result["residual_abs_mean"]
     fl = result["flip_check_d_calc"]
+    r2 = result.get("change_r2", {})
+    lines += ["", "change_r2 (1 - sum (dp - dt)^2 / sum dt^2 of the change from the input; copy 0, truth 1): " +
+              "; ".join(f"{names[k]} {fmt(v['full'])} full, {fmt(v['mask'])} mask" for k, v in r2.items() if k in names)]
     lines += ["", f"- LPIPS: {result['lpips_note']}.",
               f"- D_pred PSNR {fmt(comp.get('diffuse'))}, S_pred PSNR {fmt(comp.get('specular'))} (tone-mapped).",
               f"- Residual mean |I - A D - S| (linear, ground-truth A): model {fmt(res.get('model'))}, "

@@ -99,8 +99,8 @@ from pilight.diffusion.codec import cell_mean, cell_smooth
 from pilight.diffusion.sampler import sample
 from pilight.diffusion.schedule import sample_timesteps, v_target, v_to_x0
 from pilight.params import RelightParams, SamplingParams
-from pilight.physics import (ball_to_envmap, compose, diffuse_shading, make_feature_extractor, masked_mse,
-                             physics_loss, reconstruction_loss)
+from pilight.physics import compose, make_feature_extractor, masked_mse, physics_loss, reconstruction_loss
+from pilight.physics.calculated import diffuse_calculated
 from pilight.train.build import PREVIEW_SAMPLING, Stack, build_stack
 from pilight.train.intrinsics import to_uint8
 
@@ -196,13 +196,6 @@ def encode_conditions(codec, maps: dict[str, torch.Tensor], layout: dict[str, tu
 def branch_targets(batch: dict, branches: tuple[str, ...]) -> torch.Tensor:
     """(B, V, 3, H, W) targets in [-1, 1] (all HDR)."""
     return torch.stack([schema.to_model("image", batch[TARGETS[b]]) for b in branches], dim=1)
-
-
-def diffuse_calculated(ball: torch.Tensor, normal: torch.Tensor, mask: torch.Tensor,
-                       metallic: torch.Tensor) -> torch.Tensor:
-    """D_calc = Lambertian lookup of the unfolded ball, times (1 - metallic) (our render contract)."""
-    env = ball_to_envmap(ball.float())[0]
-    return diffuse_shading(env, normal.float(), mask.float()) * (1.0 - metallic.float())
 
 
 def physics_terms(y: torch.Tensor, *, albedo: torch.Tensor, d_calc: torch.Tensor | None, mask: torch.Tensor,

@@ -1,0 +1,113 @@
+"""Ceilings of candidate relit-output forms, computed from ground-truth maps (no model).
+
+    python benchmarks/oracle_relight.py [--shards data/shards] [--pred data/intrinsics_pred] [--split test]
+
+For every cross-light pair of the split, each candidate forms I_hat_b on the mask from physics and
+(some) ground truth, and copies the input off the mask. Printed per candidate: change_r2 on the full
+image and on the mask (pilight.eval.light_following), and relight PSNR / SSIM (the evaluation's
+tone-mapped space), beside "copy the input". With --pred, the same candidates with the conditions
+(albedo, normal, metallic) taken from stage-1 predictions: what stage-1 errors cost each form.
+
+Candidates (A, N, m: the conditions; D, S: the target light's ground truth; "cell" = the correction
+that a perfect network at one value per 4x4 codec cell would output, as the relit gain target):
+  A D_calc                     Lambertian lookup alone
+  A D_calc + S_calc            + the specular lookup of (gray - Lambertian ball), no metal Fresnel
+  A D_calc + F S_calc          + the crude metal Fresnel (pilight.physics.calculated)
+  A D_calc + S                 the true specular
+  A D + F S_calc               the true diffuse shading
+  A cell(D) + cell(S)          D and S as display-space gains on D_calc and F S_calc, cell resolution
+  A cell(D_eff) + cell(S)      D_eff = (I_b - S) / A: the shading that the CONDITIONING albedo needs
+  A cell(D) + S, A D + cell(S) which of the two loses at cell resolution
+  A D_eff + F S_calc           the effective shading at full resolution, physics specular
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import torch
+
+from pilight.data import schema
+from pilight.data.shards import eval_dataset, make_loader
+from pilight.diffusion.codec import cell_mean, cell_smooth
+from pilight.eval.light_following import ChangeR2
+from pilight.eval.metrics import psnr_per_image, ssim_per_image
+from pilight.eval.relight import tonemap01
+from pilight.physics.calculated import diffuse_calculated, specular_calculated
+from pilight.train.relight import choose_intrinsics, gain_decode, gain_encode, optional_predictions
+
+CELL = 4
+
+
+def cell_gain(truth: torch.Tensor, anchor: torch.Tensor) -> torch.Tensor:
+    """truth as a cell-resolution display-space gain on anchor, decoded (linear HDR)."""
+    tm = lambda x: schema.to_model("image", x.float())
+    g = cell_smooth(cell_mean(gain_encode(tm(truth), tm(anchor)), CELL), CELL)
+    return schema.from_model("image", gain_decode(g, tm(anchor)))
+
+
+def candidates(b: dict, c: dict) -> dict[str, torch.Tensor]:
+    """Linear-HDR relit image on the mask for each candidate; c: the conditions."""
+    A, N, m, mask = c["albedo"], c["normal"], c["metallic"], b["mask"]
+    lamb = b.get("ball_lambertian_b", b["ball_b"])
+    d_calc = diffuse_calculated(b["ball_b"], N, mask, m)
+    s_raw = specular_calculated(b["ball_b"], lamb, N, mask, A, torch.zeros_like(m))
+    s_f = specular_calculated(b["ball_b"], lamb, N, mask, A, m)
+    D, S = b["diffuse_b"].float(), b["specular_b"].float()
+    d_eff = ((b["image_b"].float() - S) / A.clamp_min(1e-3)).clamp_min(0)
+    return {"A D_calc": A * d_calc, "A D_calc + S_calc": A * d_calc + s_raw, "A D_calc + F S_calc": A * d_calc + s_f,
+            "A D_calc + S": A * d_calc + S, "A D + F S_calc": A * D + s_f,
+            "A cell(D) + cell(S)": A * cell_gain(D, d_calc) + cell_gain(S, s_f),
+            "A cell(D_eff) + cell(S)": A * cell_gain(d_eff, d_calc) + cell_gain(S, s_f),
+            "A cell(D) + S": A * cell_gain(D, d_calc) + S, "A D + cell(S)": A * D + cell_gain(S, s_f),
+            "A D_eff + F S_calc": A * d_eff + s_f}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--shards", type=Path, default=Path("data/shards"))
+    ap.add_argument("--pred", type=Path, default=Path("data/intrinsics_pred"))
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--json", type=Path, default=None, help="also write the table as JSON")
+    args = ap.parse_args(argv)
+    preds = optional_predictions(args.shards, args.pred, args.split, "oracle") if args.pred else None
+    settings = {"gt": None} | ({"pred": preds} if preds is not None else {})
+    scores: dict[str, dict[str, dict]] = {s: {} for s in settings}
+    pairs = 0
+    for b in make_loader(eval_dataset(args.shards, args.split, "relight"), 8):
+        cross = torch.tensor([json.loads(a)["light"] != json.loads(c)["light"] for a, c in zip(b["meta_a"], b["meta_b"])])
+        if not cross.any():
+            continue
+        b = {k: (v[cross] if torch.is_tensor(v) else [x for x, keep in zip(v, cross) if keep]) for k, v in b.items()}
+        pairs += int(cross.sum())
+        u_in, u_gt, mask = tonemap01(b["image_a"]), tonemap01(b["image_b"]), b["mask"]
+        for setting, p in settings.items():
+            c = choose_intrinsics(b, torch.full((len(b["key"]),), p is not None), p)
+            forms = {"copy the input": b["image_a"].float()}
+            forms.update({k: torch.where(mask > 0.5, v, b["image_a"].float()) for k, v in candidates(b, c).items()})
+            for name, img in forms.items():
+                r = scores[setting].setdefault(name, {"r2": ChangeR2(), "psnr": [], "ssim": []})
+                u = tonemap01(img)
+                r["r2"].update(u, u_gt, u_in, mask)
+                r["psnr"].append(psnr_per_image(u, u_gt))
+                r["ssim"].append(ssim_per_image(u, u_gt))
+    table = {}
+    for setting, rows in scores.items():
+        print(f"\n{args.split}: {pairs} cross-light pairs, conditions {setting}")
+        print(f"{'candidate':28s} {'r2 full':>8s} {'r2 mask':>8s} {'PSNR':>7s} {'SSIM':>6s}")
+        for name, r in rows.items():
+            r2 = r["r2"].compute()
+            row = {"change_r2_full": r2["full"], "change_r2_mask": r2["mask"],
+                   "psnr": float(torch.cat(r["psnr"]).mean()), "ssim": float(torch.cat(r["ssim"]).mean())}
+            table.setdefault(setting, {})[name] = row
+            print(f"{name:28s} {row['change_r2_full']:8.3f} {row['change_r2_mask']:8.3f} {row['psnr']:7.2f} {row['ssim']:6.3f}")
+    if args.json:
+        args.json.write_text(json.dumps({"pairs": pairs, "split": args.split, "oracles": table}, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,135 @@
+"""Does the relit image follow the chosen light? Three measures, each beside what copying scores.
+
+All three are about the CHANGE a relighting makes, which PSNR/SSIM against the target hide: most of
+a relit image repeats its input, so "copy the input" already scores well on them.
+
+* ``change_r2`` (display space u = tonemap01 of the evaluation): with dt = u(I_b) - u(I_a) the true
+  change and dp = u(I_hat_b) - u(I_a) the predicted one, pooled over every pixel of every
+  cross-light pair (optionally only the mask):
+
+      change_r2 = 1 - sum (dp - dt)^2 / sum dt^2
+
+  Copying scores exactly 0, the ground truth 1; a prediction that moves the wrong way is negative.
+* ``direction``: probe images relit under an analytic light from camera-left and camera-right
+  (``PROBE_AZIMUTH_DEG``, ``PROBE_ELEVATION_DEG``); the share whose left/right luminance asymmetry
+  (``lr_asymmetry``, ground-truth normals, mask) is larger under the right light. Chance is 0.5.
+* ``linearity``: probe images relit under their target ball and under that ball x 2; the median
+  ratio of the relit radiances (linear HDR luminance, mask). Light transport is linear: 2.
+
+Probe images (``select_probes``): inputs of cross-light test pairs, each image once, with at least
+``PROBE_SIDE_SHARE`` of their mask facing right (n_x > 0.2) and as much facing left, so an
+asymmetry can show at all.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import torch
+
+from pilight.physics.shading import ball_from_direction
+
+PROBE_AZIMUTH_DEG = 60.0    # from the view axis toward camera-right (+) or camera-left (-)
+PROBE_ELEVATION_DEG = 30.0  # above the camera's horizon
+PROBE_SIDE_SHARE = 0.05     # of the mask, facing each side
+PROBE_LIGHTS = ("left", "right", "target", "target_x2")
+SIDE_NORMAL_X = 0.2         # n_x beyond which a pixel faces right (or left, negated)
+
+
+def direction_from_angles(azimuth_deg: float, elevation_deg: float) -> torch.Tensor:
+    """Camera-space unit vector TOWARD the light: azimuth 0 = from the camera (+z), +90 = from
+    camera-right (+x), -90 = camera-left; elevation + = from above (+y)."""
+    az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
+    return torch.tensor([math.sin(az) * math.cos(el), math.sin(el), math.cos(az) * math.cos(el)])
+
+
+def lr_asymmetry(d: torch.Tensor, normal: torch.Tensor, mask: torch.Tensor, thr: float = SIDE_NORMAL_X,
+                 eps: float = 1e-6) -> torch.Tensor:
+    """(R - L) / (R + L) per image (B,): R, L = mean luminance of `d` over masked pixels whose
+    (original, unflipped) normal faces right (n_x > thr) or left (n_x < -thr).
+
+    Classifying by the normal, not by image halves, makes the measure independent of where the
+    objects sit in the frame: if shading follows N, flipping N_x swaps R and L, so the sign flips."""
+    lum = d.float().mean(1, keepdim=True)
+    m = mask.float() > 0.5
+    right, left = m & (normal[:, :1] > thr), m & (normal[:, :1] < -thr)
+    mean = lambda sel: (lum * sel).flatten(1).sum(1) / sel.flatten(1).sum(1).clamp_min(1)
+    r, l = mean(right), mean(left)
+    return (r - l) / (r + l + eps)
+
+
+class ChangeR2:
+    """Pooled change_r2 over batches, on the full image and on the mask (module docstring)."""
+
+    def __init__(self):
+        self.err = {"full": 0.0, "mask": 0.0}
+        self.tot = {"full": 0.0, "mask": 0.0}
+
+    def update(self, pred_u: torch.Tensor, target_u: torch.Tensor, input_u: torch.Tensor,
+               mask: torch.Tensor) -> None:
+        """Display values in [0, 1], (B, 3, H, W); mask (B, 1, H, W)."""
+        dp, dt = (pred_u - input_u).double(), (target_u - input_u).double()
+        m = (mask.double() > 0.5).expand_as(dt)
+        for name, sel in (("full", torch.ones_like(m)), ("mask", m)):
+            self.err[name] += float(((dp - dt) ** 2 * sel).sum())
+            self.tot[name] += float((dt ** 2 * sel).sum())
+
+    def compute(self) -> dict[str, float | None]:
+        return {k: (1.0 - self.err[k] / self.tot[k]) if self.tot[k] > 0 else None for k in self.err}
+
+
+def sides_visible(normal: torch.Tensor, mask: torch.Tensor, share: float = PROBE_SIDE_SHARE) -> torch.Tensor:
+    """(B,) bool: at least ``share`` of the mask faces right and as much faces left."""
+    m = mask.float() > 0.5
+    n = m.flatten(1).sum(1).clamp_min(1)
+    right = (m & (normal[:, :1] > SIDE_NORMAL_X)).flatten(1).sum(1) / n
+    left = (m & (normal[:, :1] < -SIDE_NORMAL_X)).flatten(1).sum(1) / n
+    return (right >= share) & (left >= share) & (m.flatten(1).sum(1) > 0)
+
+
+def select_probes(batches, count: int) -> list[dict]:
+    """The first ``count`` probe images (module docstring) of an iterable of pair batches, each as
+    a one-sample batch (the pair's input image, its intrinsics, mask and target ball)."""
+    out: list[dict] = []
+    seen: set[str] = set()
+    for b in batches:
+        ok = sides_visible(b["normal"], b["mask"])
+        for i, key in enumerate(b["key"]):
+            ma, mb = json.loads(b["meta_a"][i]), json.loads(b["meta_b"][i])
+            image = f"{ma['scene']}_v{ma['view']:02d}_l{ma['light']:02d}"
+            if ma["light"] == mb["light"] or image in seen or not ok[i]:
+                continue
+            seen.add(image)
+            out.append({k: (v[i:i + 1] if torch.is_tensor(v) else [v[i]]) for k, v in b.items()})
+            if len(out) == count:
+                return out
+    return out
+
+
+def probe_balls(target_ball: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The four probe lights for one image (``PROBE_LIGHTS``), each a ball like ``target_ball``
+    (1, 3, h, w). The analytic left/right balls get the target ball's mean radiance, so the probe
+    is exposed like the data."""
+    size = target_ball.shape[-1]
+    out = {}
+    for name, sign in (("left", -1.0), ("right", 1.0)):
+        unit = ball_from_direction(direction_from_angles(sign * PROBE_AZIMUTH_DEG, PROBE_ELEVATION_DEG), size=size)
+        scale = target_ball.float().mean() / unit.mean().clamp_min(1e-12)
+        out[name] = unit * scale
+    out["target"] = target_ball.float()
+    out["target_x2"] = 2.0 * target_ball.float()
+    return out
+
+
+def direction_score(asym_right: torch.Tensor, asym_left: torch.Tensor) -> float | None:
+    """Share of probe images whose asymmetry is larger under the right light than the left."""
+    return float((asym_right > asym_left).float().mean()) if len(asym_right) else None
+
+
+def linearity(relit_1x: torch.Tensor, relit_2x: torch.Tensor, mask: torch.Tensor, floor: float = 1e-3) -> float | None:
+    """Median over masked pixels (pooled over images) of lum(relit_2x) / lum(relit_1x), linear HDR;
+    pixels darker than ``floor`` under 1x are left out (their ratio is noise)."""
+    l1, l2 = relit_1x.float().mean(1), relit_2x.float().mean(1)
+    sel = (mask[:, 0].float() > 0.5) & (l1 > floor)
+    return float((l2[sel] / l1[sel]).median()) if sel.any() else None
