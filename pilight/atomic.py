@@ -14,6 +14,7 @@ the final path as its filename: the temporary's name, or none at all, tells the 
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import tempfile
@@ -61,6 +62,24 @@ def path_error(exc: OSError, path: str | os.PathLike, own: Callable[[str], bool]
     except TypeError:  # a subclass with a constructor of its own
         new = OSError(exc.errno, f"{exc}", os.fspath(path))
     return new
+
+
+def sha256_file(path: str | os.PathLike) -> str:
+    """Hex sha256 of a file, read in 1 MiB chunks (shards, checkpoints, models)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def folder_write_error(exc: BaseException, out: Path) -> BaseException:
+    """The error to raise when writing the folder ``out`` (through a temporary sibling
+    ``.<name>.*``) failed: an OSError (a full disk names no file) is re-raised naming ``out``."""
+    if not isinstance(exc, OSError):
+        return exc
+    prefix = os.path.join(os.fspath(Path(out).parent), f".{Path(out).name}.")
+    return path_error(exc, out, lambda name: name.startswith(prefix))
 
 
 def write_with(path: str | os.PathLike, write: Callable[[str], None]) -> Path:

@@ -76,10 +76,10 @@ def write_predictions(out: Path, splits: dict[str, Iterable[tuple[str, dict[str,
     except BaseException as exc:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
-        if isinstance(exc, OSError):  # a full disk names no file: say which output could not be written
-            prefix = os.path.join(os.fspath(out.parent), f".{out.name}.")
-            raise atomic.path_error(exc, out, lambda name: name.startswith(prefix)) from exc
-        raise
+        err = atomic.folder_write_error(exc, out)  # a full disk names no file: say which output failed
+        if err is exc:
+            raise
+        raise err from exc
     return index
 
 

@@ -19,7 +19,6 @@ naming the shard.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import random
@@ -37,6 +36,7 @@ from torch.utils.data import DataLoader, IterableDataset
 from tqdm import tqdm
 
 from pilight import atomic
+from pilight.atomic import sha256_file
 from pilight.data import layout
 from pilight.data.exr import ExrError, read_exr, read_exr_bytes, write_exr
 from pilight.data.pairs import make_pairs, read_pairs, write_pairs
@@ -80,10 +80,10 @@ def write_shards(renders: Path, out: Path, params: ShardParams, *, seed: int,
     except BaseException as exc:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
-        if isinstance(exc, OSError):  # a full disk names no file: say which output could not be written
-            prefix = os.path.join(os.fspath(out.parent), f".{out.name}.")
-            raise atomic.path_error(exc, out, lambda name: name.startswith(prefix)) from exc
-        raise
+        err = atomic.folder_write_error(exc, out)  # a full disk names no file: say which output failed
+        if err is exc:
+            raise
+        raise err from exc
     return index
 
 
@@ -249,14 +249,6 @@ def read_index(shard_dir: Path) -> dict[str, Any]:
     if not isinstance(index, dict) or not isinstance(index.get("splits"), dict):
         raise DataError(f"{path}: want an object with 'splits'; rerun the shard stage")
     return index
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 # Shards already verified in this process, by (path, size, mtime, inode, recorded sha256): the

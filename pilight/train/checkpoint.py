@@ -46,6 +46,7 @@ from safetensors import safe_open
 from safetensors.torch import load_file, load_model, save_file, save_model
 
 from pilight import atomic
+from pilight.atomic import sha256_file
 
 MODEL_FILE = "model.safetensors"
 OPTIMIZER_FILE = "optimizer.safetensors"
@@ -65,14 +66,6 @@ class CheckpointError(ValueError):
 
 class NonFiniteError(FloatingPointError):
     """Weights or loss hold NaN/Inf: nothing is checkpointed or saved."""
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def non_finite_tensors(tensors: dict[str, torch.Tensor]) -> list[str]:
