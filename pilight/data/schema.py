@@ -130,6 +130,15 @@ def srgb_preview(x: np.ndarray) -> np.ndarray:
     return np.round(srgb * 255.0).astype(np.uint8)
 
 
+def to_uint8(x, hdr: bool) -> np.ndarray:
+    """C x H x W tensor -> H x W x 3 uint8 sRGB preview (``hdr``: srgb_preview, clipped at 1; else the
+    [0, 1] values as they are). For report tiles and training previews only."""
+    a = x.detach().float().cpu().numpy().transpose(1, 2, 0)
+    if a.shape[2] == 1:
+        a = np.repeat(a, 3, axis=2)
+    return srgb_preview(a) if hdr else (np.clip(a, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
 # --- validation ---------------------------------------------------------------------------
 def sample_key(scene: str, view: int, light: int) -> str:
     """The webdataset key; no dots allowed, since webdataset splits member names at the first one."""

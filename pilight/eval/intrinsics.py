@@ -113,18 +113,20 @@ def evaluate_intrinsics(shard_dir: Path, pred_dir: Path, split: str = "test", lp
 
 
 def grid(image: torch.Tensor, gt: dict, pred: dict, mask: torch.Tensor, n: int) -> np.ndarray:
-    """One row per image: input | (ground truth, prediction) for each predicted intrinsic."""
-    from pilight.train.intrinsics import to_uint8
+    """One row per image: input | (ground truth, prediction) for each predicted intrinsic, labelled."""
+    from pilight.data.schema import to_uint8
+    from pilight.eval.grids import labelled_grid
 
+    domains = [d for d in DOMAINS if d in pred]
     rows = []
     for i in range(min(n, image.shape[0])):
         tiles = [to_uint8(image[i], hdr=True)]
-        for d in DOMAINS:
-            if d in pred:
-                m = mask[i:i + 1]
-                tiles += [to_uint8(display01(d, x[d][i:i + 1], m)[0], hdr=False) for x in (gt, pred)]
-        rows.append(np.concatenate(tiles, axis=1))
-    return np.concatenate(rows, axis=0)
+        for d in domains:
+            m = mask[i:i + 1]
+            tiles += [to_uint8(display01(d, x[d][i:i + 1], m)[0], hdr=False) for x in (gt, pred)]
+        rows.append(tiles)
+    labels = ["input"] + [f"{d} {who}" for d in domains for who in ("truth", "model")]
+    return labelled_grid(rows, labels)
 
 
 def markdown_table(result: dict, split: str) -> str:

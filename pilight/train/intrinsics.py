@@ -20,6 +20,8 @@ from pilight.data.shards import intrinsics_dataset, make_loader
 from pilight.diffusion.sampler import sample
 from pilight.diffusion.schedule import sample_timesteps, v_target
 from pilight.params import DOMAINS, IntrinsicsParams, SamplingParams
+from pilight.data.schema import to_uint8
+from pilight.eval.grids import labelled_grid
 from pilight.train.build import PREVIEW_SAMPLING, Stack, build_stack
 
 
@@ -67,14 +69,6 @@ def latent_mask(mask: torch.Tensor, factor: int) -> torch.Tensor:
 def masked_latent_mse(v_pred: torch.Tensor, v_tgt: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
     """Paper L_stage1 = MSE(v_pred * m_z, v_target * m_z); 0 (not NaN) for an empty mask."""
     return F.mse_loss(v_pred * m, v_tgt * m)
-
-
-def to_uint8(x: torch.Tensor, hdr: bool) -> np.ndarray:
-    """C x H x W -> H x W x 3 uint8 sRGB preview (HDR images tone-mapped by the schema)."""
-    a = x.detach().float().cpu().numpy().transpose(1, 2, 0)
-    if a.shape[2] == 1:
-        a = np.repeat(a, 3, axis=2)
-    return schema.srgb_preview(a) if hdr else (np.clip(a, 0, 1) * 255 + 0.5).astype(np.uint8)
 
 
 class IntrinsicsTask:
@@ -143,5 +137,5 @@ class IntrinsicsTask:
             gt, pr = batch[d][0], pred[d][0].cpu()
             if d == "normal":
                 gt, pr = (gt + 1) / 2, (pr + 1) / 2
-            rows.append(np.concatenate([to_uint8(batch["image"][0], hdr=True), to_uint8(gt, False), to_uint8(pr, False)], axis=1))
-        return {"intrinsics_grid": np.concatenate(rows, axis=0)}
+            rows.append([to_uint8(batch["image"][0], hdr=True), to_uint8(gt, False), to_uint8(pr, False)])
+        return {"intrinsics_grid": labelled_grid(rows, ["input", "truth", "model"], row_labels=list(DOMAINS))}
