@@ -316,6 +316,9 @@ class RelightParams(ModelParams):
     lambda_ps: float = Field(1.0, ge=0.0, description="lambda_2, physical-shading loss")
     lambda_rec: float = Field(0.1, ge=0.0, description="lambda_3, reconstruction (feature) loss")
     t_min: float = Field(1.0, gt=0.0, description="floor of t in the 1/t weight")
+    lambda_image: float = Field(0.0, ge=0.0, description="ours: the formed relit image vs the target (display-space "
+                                                         "MSE) on samples at t = T-1, where single-step inference "
+                                                         "runs (E2E-FT); 0 = the paper")
     rec_features: Literal["pooled-rgb", "dinov2"] = Field("pooled-rgb", description="dinov2 = the paper (needs dinov2_path)")
     dinov2_path: str | None = None
     conditions: Literal["gt", "pred", "mix"] = Field("mix", description="intrinsics given to the model while training")
@@ -328,6 +331,18 @@ class RelightParams(ModelParams):
     relit_resolution: Literal["full", "cell"] = Field(
         "full", description="full = a value per pixel (the paper); cell = the relit branch's change is one value "
                             "per codec cell, bilinearly interpolated (smooth by construction; needs residual or gain)")
+    physics_first: bool = Field(
+        False, description="true = on the mask I_relit = A_x D_pred + S_pred, D and S predicted as gains on their "
+                           "physics lookups D_calc and S_calc (pilight.relight.physics_first); false = the paper's "
+                           "free relit branch")
+    albedo_source: Literal["effective", "conditioning"] = Field(
+        "effective", description="A_x of physics_first: effective = the albedo that explains the input under its own "
+                                 "light (the ratio form; cancels stage-1 albedo errors); conditioning = the "
+                                 "conditioning albedo")
+    source_light: Literal["estimated", "rendered"] = Field(
+        "estimated", description="the input's own light for albedo_source effective: estimated = fitted to the input "
+                                 "(pilight.physics.source_light; what a photo gets); rendered = the shards' ball of "
+                                 "the input light")
     d_calc_condition: tuple[Literal["relit", "diffuse", "specular"], ...] = Field(
         (), description="branches that also get D_calc (Lambertian lookup of the target ball with the conditioning "
                         "normals) as a condition map; () = the paper")
@@ -344,6 +359,10 @@ class RelightParams(ModelParams):
         if self.relit_resolution == "cell" and self.relit_target == "image":
             raise ValueError("relit_resolution 'cell' smooths the relit branch's CHANGE of the input, so it needs "
                              "relit_target 'residual' or 'gain', not 'image'")
+        if self.physics_first and (not self.decomposition or self.relit_target != "gain"):
+            raise ValueError("physics_first forms the relit image from the diffuse and specular branches and uses the "
+                             "relit branch as a gain off the mask, so it needs decomposition: true and relit_target: "
+                             f"gain (got decomposition: {self.decomposition}, relit_target: {self.relit_target!r})")
         if self.rec_features == "dinov2" and not self.dinov2_path:
             raise ValueError("rec_features is 'dinov2' but dinov2_path is not set (a local DINOv2 folder)")
         if self.dinov2_path and not Path(self.dinov2_path).is_dir():

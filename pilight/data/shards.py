@@ -398,10 +398,12 @@ class ShardDataset(IterableDataset):
         ma, mb = _meta(sa), _meta(sb)
         out = {"key": f"{sample_key(ma['scene'], ma['view'], ma['light'])}_to_l{mb['light']:02d}",
                "meta_a": sa["meta.json"].decode(), "meta_b": sb["meta.json"].decode(),
-               "image_a": _tensor(sa, "image")}
+               "image_a": _tensor(sa, "image"), "ball_a": _tensor(sa, "ball")}
         out.update({f"{k}_b": _tensor(sb, k) for k in ("image", "ball", "diffuse", "specular")})
         if "ball_lambertian.exr" in sb:  # present when the render stage wrote it (render.lambertian_ball)
             out["ball_lambertian_b"] = _tensor(sb, "ball_lambertian")
+        if "ball_lambertian.exr" in sa:
+            out["ball_lambertian_a"] = _tensor(sa, "ball_lambertian")
         out.update({k: _tensor(sb, k) for k in INTRINSICS})
         return out
 
@@ -465,9 +467,9 @@ def intrinsics_dataset(shard_dir: Path, split: str = "train", *, shuffle: bool =
 
 def relight_dataset(shard_dir: Path, split: str = "train", *, shuffle: bool = True,
                     repeat: bool = False, seed: int = 0, buffer: int = 256) -> ShardDataset:
-    """Stage 2: {key, meta_a, meta_b, image_a, image_b, ball_b, diffuse_b, specular_b, albedo,
-    normal, roughness, metallic, mask} (+ ball_lambertian_b when rendered): input under light a,
-    target under light b, same view."""
+    """Stage 2: {key, meta_a, meta_b, image_a, ball_a, image_b, ball_b, diffuse_b, specular_b, albedo,
+    normal, roughness, metallic, mask} (+ ball_lambertian_a/_b when rendered): input under light a
+    (with the ball of that light), target under light b, same view."""
     return ShardDataset(shard_dir, split, "relight", shuffle=shuffle, repeat=repeat, seed=seed, buffer=buffer)
 
 

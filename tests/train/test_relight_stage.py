@@ -13,8 +13,11 @@ from pilight.data.schema import DataError
 from pilight.data.shards import intrinsics_dataset, make_loader, relight_dataset
 from pilight.params import RelightParams, SamplingParams
 from pilight.physics import physics_loss
-from pilight.train.relight import (PRED_DOMAINS, RelightTask, choose_intrinsics, encode_conditions, physics_terms,
-                                   tonemap)
+from pilight.relight.branches import encode_conditions
+from pilight.relight.conditions import PRED_DOMAINS, choose_intrinsics
+from pilight.relight.encoding import tonemap
+from pilight.relight.physics_terms import physics_terms
+from pilight.train.relight import RelightTask
 from tests.stage_scripts import params_file, run_stage, tiny_shards
 
 TINY = {"unet": {"block_out_channels": [32, 32], "layers_per_block": 1, "attention_head_dim": 8, "cross_attention_dim": 32},
@@ -111,7 +114,7 @@ def test_conditions_are_padded_to_one_width(shards):
     task = RelightTask(_p(), shards, seed=0)
     b = _batch(shards)
     lc = task.stack.codec.latent_channels
-    from pilight.train.relight import condition_images
+    from pilight.relight.branches import condition_images
     z = encode_conditions(task.stack.codec, condition_images(b["image_a"], b, b["ball_b"], b["mask"]), task.layout, 5)
     assert z.shape == (2 * 3, 5 * lc, 4, 4)
     assert (z[0, 2 * lc:] == 0).all() and (z[1, 3 * lc:] == 0).all() and (z[2, 4 * lc:] != 0).any()
@@ -119,7 +122,8 @@ def test_conditions_are_padded_to_one_width(shards):
 
 def test_d_calc_condition_adds_the_lookup_of_the_conditioning_normals(shards):
     from pilight.data import schema
-    from pilight.train.relight import condition_images, diffuse_calculated
+    from pilight.physics.calculated import diffuse_calculated
+    from pilight.relight.branches import condition_images
 
     task = RelightTask(_p(d_calc_condition=["relit", "diffuse"]), shards, seed=0)
     assert task.layout == {"relit": ("image", "albedo", "d_calc"), "diffuse": ("normal", "ball", "mask", "d_calc"),
@@ -226,6 +230,15 @@ def test_train_relight_evaluate_scripts(shards, preds, tmp_path):
     assert rel["relight"]["model"]["lpips"] is None and "evaluate.lpips_backbone" in rel["lpips_note"]
     assert rel["residual_abs_mean"]["ground_truth"] < 0.05
     assert "| copy the input" in (tmp_path / "reports" / "relight.md").read_text()
+    # physics_first (the repo's default): the identity on the mask, and the light-following measures
+    assert index["parts"]["physics_first"] and {"test", "test_gt", "probes"} <= set(index["splits"])
+    assert timing["identity_residual_relative"] < 1e-6  # float32 outputs, before the float16 EXRs
+    assert rel["identity_residual_relative"] < 2e-3     # from the float16 EXRs
+    lf = rel["light_following"]
+    assert lf["probes"] == index["splits"]["probes"]["samples"] // 4 and lf["probes"] > 0
+    assert 0.0 <= lf["direction"] <= 1.0 and lf["linearity"] == pytest.approx(2.0, rel=1e-2)
+    assert set(lf["change_r2_gt_conditions"]) == {"full", "mask"}
+    assert "Light-following of the model" in (tmp_path / "reports" / "relight.md").read_text()
 
 
 def test_missing_model_is_a_clear_error(shards, tmp_path):
@@ -306,7 +319,7 @@ def test_cell_resolution_ignores_everything_inside_a_cell(shards, monkeypatch, t
 
 def test_gain_round_trip_and_bounds():
     """gain_decode(gain_encode(y_b, y_a), y_a) = y_b over the whole model range, and G stays within GAIN_MAX."""
-    from pilight.train.relight import GAIN_MAX, gain_decode, gain_encode
+    from pilight.relight.encoding import GAIN_MAX, gain_decode, gain_encode
 
     g = torch.Generator().manual_seed(0)
     y_a, y_b = torch.rand(2, 4, 3, 16, 16, generator=g) * 1.999 - 1
@@ -327,7 +340,7 @@ def test_flip_check_tells_a_shading_that_follows_n_from_one_that_does_not(shards
     every pair with a visible side; a D_pred that ignores N flips in none."""
     import importlib.util
 
-    from pilight.train.relight import diffuse_calculated
+    from pilight.physics.calculated import diffuse_calculated
 
     spec = importlib.util.spec_from_file_location("relight_stage", Path(__file__).parents[2] / "stages" / "relight.py")
     stage = importlib.util.module_from_spec(spec)

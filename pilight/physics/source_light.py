@@ -1,0 +1,90 @@
+"""The light a photo was taken under, estimated from the photo and its intrinsics: a Lambertian ball.
+
+Physics-first relighting with the effective albedo (pilight.relight.physics_first) needs the input's
+own light. Rendered data carry its ball; a photo does not. On diffuse pixels a photo is I = A D(n),
+and the diffuse shading of any distant light is, to within a few percent, a second-order spherical
+harmonic expansion of the normal (Ramamoorthi & Hanrahan 2001, "An efficient representation for
+irradiance environment maps"):
+
+    D(n) = sum_k c_k Y_k(n),   Y = (1, x, y, z, xy, yz, xz, x^2 - y^2, 3 z^2 - 1)
+
+so the nine c_k per channel follow from a least-squares fit of I to A Y(n) over the mask's dielectric
+pixels. The estimate is returned as the gray ball of that light, BALL_ALBEDO max(D(n), 0) at each
+ball normal, so it enters the same lookups as a rendered ball. It knows nothing of highlights (its
+Lambertian twin is itself) or of light from behind the visible hemisphere.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .envmap import BALL_ALBEDO, ball_normals
+
+MIN_PIXELS = 32     # fewer usable pixels than this cannot pin nine coefficients down
+RIDGE = 1e-6        # Tikhonov weight, relative to the normal matrix's mean diagonal (front-hemisphere normals leave the basis nearly collinear)
+METALLIC_MAX = 0.5  # pixels more metallic than this have no diffuse lobe to fit
+ALBEDO_MIN = 0.02   # black pixels carry no shading
+
+
+class SourceLightError(ValueError):
+    """The photo has too few usable pixels to estimate its light."""
+
+
+def sh_basis(normal: torch.Tensor) -> torch.Tensor:
+    """(B, 9, H, W): the nine real SH polynomials (unnormalised) of unit normals (B, 3, H, W)."""
+    x, y, z = normal[:, 0], normal[:, 1], normal[:, 2]
+    return torch.stack([torch.ones_like(x), x, y, z, x * y, y * z, x * z, x * x - y * y, 3 * z * z - 1], 1)
+
+
+def fit_diffuse_sh(image: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor, mask: torch.Tensor,
+                   metallic: torch.Tensor | None = None) -> torch.Tensor:
+    """(B, 3, 9) coefficients c with image ~ albedo * sum_k c_k Y_k(normal) on usable pixels: masked,
+    albedo above ALBEDO_MIN, and dielectric (metallic < METALLIC_MAX) unless fewer than MIN_PIXELS are."""
+    usable = (mask[:, 0] > 0.5) & (albedo.float().mean(1) > ALBEDO_MIN)
+    dielectric = usable & (metallic[:, 0] < METALLIC_MAX) if metallic is not None else usable
+    basis = sh_basis(normal.float())
+    out = torch.zeros(image.shape[0], 3, 9)
+    for i in range(image.shape[0]):
+        # Dielectric pixels when there are enough; an all-metal image is fitted on every usable pixel
+        # (its highlights then stand in for the light: the best this image says about it).
+        sel = dielectric[i] if int(dielectric[i].sum()) >= MIN_PIXELS else usable[i]
+        if int(sel.sum()) < MIN_PIXELS:
+            raise SourceLightError(f"image {i}: {int(sel.sum())} usable pixels (masked, dielectric, albedo > "
+                                   f"{ALBEDO_MIN}); at least {MIN_PIXELS} are needed to estimate its light")
+        y_k = basis[i][:, sel].T.double()  # (P, 9)
+        for c in range(3):
+            x = albedo[i, c][sel].double()[:, None] * y_k
+            gram = x.T @ x
+            gram = gram + RIDGE * gram.diagonal().mean() * torch.eye(9, dtype=gram.dtype)
+            out[i, c] = torch.linalg.solve(gram, x.T @ image[i, c][sel].double()).float()
+    return out
+
+
+def sh_ball(coeffs: torch.Tensor, size: int) -> torch.Tensor:
+    """(B, 3, size, size): the gray ball that a light of diffuse shading sum_k c_k Y_k shows."""
+    n, inside = ball_normals(size, size)
+    d = torch.einsum("bck,khw->bchw", coeffs, sh_basis(n)[0]).clamp_min(0.0)
+    return BALL_ALBEDO * d * inside
+
+
+def estimate_source_ball(image: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor, mask: torch.Tensor,
+                         size: int, metallic: torch.Tensor | None = None) -> torch.Tensor:
+    """The Lambertian ball of the light ``image`` was lit by (module docstring), (B, 3, size, size).
+    SourceLightError when an image has too few usable pixels."""
+    return sh_ball(fit_diffuse_sh(image, albedo, normal, mask, metallic), size)
+
+
+def estimate_source_balls(image: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor, mask: torch.Tensor,
+                          size: int, metallic: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per image: (balls (B, 3, size, size), found (B,) bool); an image with too few usable pixels
+    gets a black ball and found = False, for the caller to handle (none is guessed)."""
+    balls = torch.zeros(image.shape[0], 3, size, size)
+    found = torch.zeros(image.shape[0], dtype=torch.bool)
+    for i in range(image.shape[0]):
+        one = lambda x: None if x is None else x[i:i + 1]
+        try:
+            balls[i] = estimate_source_ball(one(image), one(albedo), one(normal), one(mask), size, one(metallic))[0]
+            found[i] = True
+        except SourceLightError:
+            pass
+    return balls, found
