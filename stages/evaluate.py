@@ -4,7 +4,9 @@
 
 Stage 1 (intrinsics) in the paper's Table 1 / Table 7 layout, and stage 2 (relighting: PSNR/SSIM
 in the relight and reconstruction settings beside "copy the input" and analytic A * D_calc, the
-A D + S residual, the flipped-normal check) -> metrics.json (dvc metrics, shown by `dvc exp show`),
+A D + S residual, the flipped-normal check, light-following: change_r2 with stage-1 and with
+ground-truth conditions, direction and linearity of the probes, the physics-first identity)
+-> metrics.json (dvc metrics, shown by `dvc exp show`),
 reports/intrinsics.md, reports/relight.md, reports/intrinsics_grid.png (input | ground truth |
 prediction for each intrinsic) and reports/relight_grid.png (target ball | input | target | relit,
 then ground truth | model for D and S).  LPIPS needs local backbone weights (`evaluate.lpips_backbone`);

@@ -13,9 +13,14 @@ Also the paper's appendix check on the first FLIP_CHECK_BATCHES batches of pairs
 ground-truth intrinsics: the same pairs with the x channel of N flipped; the left/right asymmetry of
 D_pred should change sign (metrics/relight.json).
 
+Splits written to data/relit: `<split>` (every pair, the conditions above), `<split>_gt` (the
+cross-light pairs again with ground-truth conditions, when the first used stage-1 predictions) and
+`probes` (PROBE_IMAGES test images under the light-following probe lights: pilight.eval.light_following).
+With relight.physics_first the outputs also hold "albedo", the A_x of I_relit = A_x D + S.
+
 Reads params `base`, `relight` (the model) and `relight_infer`; models/relight + data/shards
-(+ data/intrinsics_pred) -> data/relit; timings -> metrics/relight.json (never into data/relit,
-which is byte-deterministic).
+(+ data/intrinsics_pred) -> data/relit; timings and the identity residual -> metrics/relight.json
+(never into data/relit, which is byte-deterministic).
 """
 
 from __future__ import annotations
@@ -54,8 +59,11 @@ def main(argv: list[str] | None = None) -> int:
     from pilight.data.predictions import write_predictions
     from pilight.data.schema import DataError
     from pilight.data.shards import eval_dataset, make_loader, read_index
+    from pilight.eval.light_following import (PROBE_LIGHTS, PROBE_SPLIT, cross_light, probe_batch, probe_key,
+                                              select_probes)
     from pilight.train.build import ModelError, check_image_size, load_model
-    from pilight.train.relight import PRED_DOMAINS, RelightTask, choose_intrinsics, optional_predictions
+    from pilight.relight.conditions import PRED_DOMAINS, choose_intrinsics, optional_predictions
+    from pilight.train.relight import RelightTask
 
     split = ip.split
     try:
@@ -73,37 +81,69 @@ def main(argv: list[str] | None = None) -> int:
     source = "pred" if preds is not None else "gt"
     task.stack.model.eval()
     timing = {"pairs": 0, "seconds": 0.0}
+    identity = {"abs": 0.0, "ref": 0.0}  # |I_relit - A D - S| and |I_relit| on the mask, float32 outputs
     first: list[dict] = []  # the batches the flipped-normal check reuses
 
-    def relit():
+    def relit(conditions: str, cross_only: bool = False):
         loader = make_loader(eval_dataset(args.shards, split, "relight"), ip.batch_size)
         gen = torch.Generator().manual_seed(base.seed)
-        with tqdm(desc=f"relight {split}", unit="pair") as bar:
+        main = conditions == source
+        with tqdm(desc=f"relight {split} ({conditions} conditions)", unit="pair") as bar:
             for batch in loader:
+                if cross_only:
+                    batch = cross_light(batch)
+                    if batch is None:
+                        continue
                 B = len(batch["key"])
-                intr = choose_intrinsics(batch, torch.full((B,), preds is not None), preds)
+                intr = choose_intrinsics(batch, torch.full((B,), conditions == "pred"), preds)
                 t0 = time.perf_counter()
                 out = task.predict(batch, ip, gen, intr)
-                timing["seconds"] += time.perf_counter() - t0
-                timing["pairs"] += B
-                if len(first) < FLIP_CHECK_BATCHES:
-                    first.append(batch)
+                if main:
+                    timing["seconds"] += time.perf_counter() - t0
+                    timing["pairs"] += B
+                    if "albedo" in out:  # physics_first: the relit image is A_x D + S on the mask
+                        m = batch["mask"].expand_as(out["relit"]) > 0.5
+                        composed = out["albedo"] * out["diffuse"] + out["specular"]
+                        identity["abs"] += float((out["relit"] - composed).abs()[m].sum())
+                        identity["ref"] += float(out["relit"].abs()[m].sum())
+                    if len(first) < FLIP_CHECK_BATCHES:
+                        first.append(batch)
                 for i, key in enumerate(batch["key"]):
                     ma, mb = json.loads(batch["meta_a"][i]), json.loads(batch["meta_b"][i])
                     meta = json.dumps({"scene": ma["scene"], "view": ma["view"], "light_a": ma["light"],
-                                       "light_b": mb["light"], "conditions": source}, sort_keys=True)
+                                       "light_b": mb["light"], "conditions": conditions}, sort_keys=True)
                     yield key, {b: v[i].cpu().numpy().transpose(1, 2, 0) for b, v in out.items()}, meta
                 bar.update(B)
 
+    def probes():
+        """The light-following probes (pilight.eval.light_following): each probe image under four lights."""
+        chosen = select_probes(make_loader(eval_dataset(args.shards, split, "relight"), 8), PROBE_IMAGES)
+        for probe in tqdm(chosen, desc="relight probes", unit="image"):
+            batch = probe_batch(probe)
+            intr = choose_intrinsics(batch, torch.full((len(PROBE_LIGHTS),), preds is not None), preds)
+            out = task.predict(batch, ip, torch.Generator().manual_seed(base.seed), intr)
+            for i, light in enumerate(PROBE_LIGHTS):
+                meta = json.dumps({"probe_light": light, "conditions": source}, sort_keys=True)
+                yield probe_key(probe, light), {"relit": out["relit"][i].cpu().numpy().transpose(1, 2, 0)}, meta
+
     info = {"branches": list(task.branches), "sampling": ip.model_dump(mode="json"), "conditions": source,
-            "condition_domains": list(PRED_DOMAINS), "parts": task.describe()}
-    out_index = write_predictions(args.out, {split: relit()}, info)
+            "condition_domains": list(PRED_DOMAINS), "parts": task.describe(),
+            "splits_written": {split: f"every pair, {source} conditions",
+                               f"{split}_gt": "cross-light pairs, ground-truth conditions",
+                               PROBE_SPLIT: "probe images under the light-following probe lights"}}
+    jobs = {split: relit(source)}
+    if source == "pred":
+        jobs[f"{split}_gt"] = relit("gt", cross_only=True)
+    jobs[PROBE_SPLIT] = probes()
+    out_index = write_predictions(args.out, jobs, info)
 
     flip = {"pairs": 0, "note": "needs the diffuse branch (relight.decomposition: true)"}
     if not args.no_flip_check and first and "diffuse" in task.branches:
         flip = flip_check(task, first, ip, base.seed)
     per_pair = timing["seconds"] / max(timing["pairs"], 1)
+    ident = identity["abs"] / identity["ref"] if identity["ref"] > 0 else None
     atomic.write_json(args.metrics, {"seconds_per_pair": per_pair, "pairs": timing["pairs"], "conditions": source,
+                                     "identity_residual_relative": ident,
                                      "samples": out_index["splits"][split]["samples"], "flip_check_d_pred": flip},
                       sort_keys=True)
     print(f"relight: {timing['pairs']} pairs, {per_pair:.3f} s/pair ({ip.mode}, {ip.steps} steps, cfg {ip.cfg_scale}, "
@@ -111,6 +151,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+PROBE_IMAGES = 12        # light-following probe images (the issue asks for at least 12)
 FLIP_CHECK_BATCHES = 3  # relight_infer.batch_size pairs each (12 with the default 4)
 FLIP_VISIBLE = 0.1      # |(R - L) / (R + L)| of D_pred above which a pair shows a side at all
 
@@ -122,7 +163,7 @@ def flip_check(task, batches: list[dict], ip, seed: int, visible_above: float = 
     import torch
 
     from pilight.eval.light_following import lr_asymmetry
-    from pilight.train.relight import choose_intrinsics
+    from pilight.relight.conditions import choose_intrinsics
 
     a, b = [], []
     for batch in batches:

@@ -133,3 +133,57 @@ def linearity(relit_1x: torch.Tensor, relit_2x: torch.Tensor, mask: torch.Tensor
     l1, l2 = relit_1x.float().mean(1), relit_2x.float().mean(1)
     sel = (mask[:, 0].float() > 0.5) & (l1 > floor)
     return float((l2[sel] / l1[sel]).median()) if sel.any() else None
+
+
+PROBE_SPLIT = "probes"  # the relit folder's split that holds the probe images' relit outputs
+
+
+def probe_key(probe: dict, light: str) -> str:
+    """`<scene>_vNN_lNN_probe_<light>` of a probe image (a one-sample batch of select_probes)."""
+    ma = json.loads(probe["meta_a"][0])
+    return f"{ma['scene']}_v{ma['view']:02d}_l{ma['light']:02d}_probe_{light}"
+
+
+def probe_batch(probe: dict) -> dict:
+    """The probe image under the four PROBE_LIGHTS as one batch of 4 (the target ball's Lambertian
+    twin scaled alike; the analytic balls are their own twin: they have no highlight)."""
+    balls = probe_balls(probe["ball_b"])
+    lamb = probe.get("ball_lambertian_b")
+    twins = {"left": balls["left"], "right": balls["right"]}
+    if lamb is not None:
+        twins |= {"target": lamb.float(), "target_x2": 2.0 * lamb.float()}
+    else:
+        twins |= {"target": balls["target"], "target_x2": balls["target_x2"]}
+    out = {k: (v.expand(len(PROBE_LIGHTS), *v.shape[1:]) if torch.is_tensor(v) else v * len(PROBE_LIGHTS))
+           for k, v in probe.items()}
+    out["ball_b"] = torch.cat([balls[n] for n in PROBE_LIGHTS])
+    out["ball_lambertian_b"] = torch.cat([twins[n] for n in PROBE_LIGHTS])
+    return out
+
+
+def probe_scores(relit: dict[str, dict], probes: list[dict]) -> dict:
+    """direction and linearity (module docstring) from the probes' relit outputs (linear HDR,
+    H x W x 3 arrays keyed by probe_key), with the probes' ground-truth normals and masks."""
+    if not probes:
+        return {"probes": 0, "direction": None, "linearity": None, "note": "no test image shows both sides"}
+    get = lambda p, n: torch.from_numpy(relit[probe_key(p, n)]["relit"]).permute(2, 0, 1)[None].float()
+    normal = torch.cat([p["normal"] for p in probes])
+    mask = torch.cat([p["mask"] for p in probes])
+    right, left = (torch.cat([get(p, n) for p in probes]) for n in ("right", "left"))
+    one, two = (torch.cat([get(p, n) for p in probes]) for n in ("target", "target_x2"))
+    return {"probes": len(probes), "direction": direction_score(lr_asymmetry(right, normal, mask),
+                                                                lr_asymmetry(left, normal, mask)),
+            "linearity": linearity(one, two, mask),
+            "what": f"direction: share of {len(probes)} probe images whose relit left/right asymmetry (ground-truth "
+                    f"normals, mask) is larger under an analytic light from camera-right than from camera-left "
+                    f"(azimuth +-{PROBE_AZIMUTH_DEG:g}, elevation {PROBE_ELEVATION_DEG:g} deg; chance 0.5); "
+                    "linearity: median relit radiance ratio under the target ball x 2 and x 1 (mask; truth 2)"}
+
+
+def cross_light(batch: dict) -> dict | None:
+    """The cross-light pairs (light a != light b) of a pairs batch, or None when it has none."""
+    keep = [json.loads(a)["light"] != json.loads(b)["light"] for a, b in zip(batch["meta_a"], batch["meta_b"])]
+    if not any(keep):
+        return None
+    sel = torch.tensor(keep)
+    return {k: (v[sel] if torch.is_tensor(v) else [x for x, k_ in zip(v, keep) if k_]) for k, v in batch.items()}

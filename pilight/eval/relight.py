@@ -12,6 +12,10 @@ Baselines:
   ground-truth normals, times (1 - metallic) as in training (no specular, no shadows, black background).
 Light-following (pilight.eval.light_following): change_r2 of every method on the full image and on
 the mask, over the cross-light pairs (copying scores 0, the ground truth 1).
+Light-following of the model with ground-truth conditions, and the probes' direction and
+linearity, come from the relit folder's `<split>_gt` and `probes` splits (``light_following``).
+With physics_first, ``identity_residual_relative`` is sum |I_relit - A_x D - S| / sum |I_relit| on the
+mask, A_x being the albedo the model formed I_relit with (float16 EXRs: ~1e-3 at most).
 Also: the decomposition residual mean |I_relit - A D_pred - S_pred| (linear HDR, ground-truth A)
 of the model and of the ground truth (float16 shards: ~1e-3), PSNR of D_pred and S_pred, and the
 paper's appendix check on the analytic shading: flipping the x channel of N should flip which
@@ -25,18 +29,22 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from pilight.data import schema
 from pilight.data.predictions import read_predictions
 from pilight.data.schema import DataError
 from pilight.data.shards import eval_dataset, make_loader
+from pilight.eval.grids import labelled_grid
 from pilight.eval.metrics import psnr_per_image, ssim_per_image
 from pilight.physics import compose
-from pilight.eval.light_following import ChangeR2, lr_asymmetry
+from pilight.eval.light_following import (PROBE_SPLIT, ChangeR2, cross_light, lr_asymmetry, probe_key, probe_scores,
+                                          select_probes)
 from pilight.physics.calculated import diffuse_calculated
 
 METHODS = ("model", "copy_input", "analytic_ad")
+PROBE_COUNT_MAX = 64  # probes are re-selected in shard order; those the relight stage relit are scored
 
 
 def tonemap01(x: torch.Tensor) -> torch.Tensor:
@@ -45,31 +53,31 @@ def tonemap01(x: torch.Tensor) -> torch.Tensor:
 
 
 def grid_row(ball: torch.Tensor, image_a: torch.Tensor, image_b: torch.Tensor, pred: dict[str, torch.Tensor],
-             gt_d: torch.Tensor, gt_s: torch.Tensor) -> torch.Tensor:
-    """One cross-light pair as (3, H, W * tiles) in [0, 1]: target ball | input | target | model relit,
-    then ground truth | model for D and S when the model has those branches."""
+             gt_d: torch.Tensor, gt_s: torch.Tensor) -> list[np.ndarray]:
+    """One cross-light pair as uint8 tiles, in GRID_COLUMNS order (D and S when the model has them)."""
     h = image_a.shape[-1]
     ball = torch.nn.functional.interpolate(ball[None].float(), size=(h, h), mode="nearest")[0]
     tiles = [ball, image_a, image_b, pred["relit"]]
     if "diffuse" in pred:
         tiles += [gt_d, pred["diffuse"], gt_s, pred["specular"]]
-    return torch.cat([tonemap01(t[None])[0] for t in tiles], dim=2)
+    return [(tonemap01(t[None])[0].clamp(0, 1).permute(1, 2, 0) * 255 + 0.5).byte().numpy() for t in tiles]
 
 
-GRID_COLUMNS = "target ball | input | target | model relit | D ground truth | D model | S ground truth | S model"
+GRID_COLUMNS = ("target ball", "input", "target", "model relit", "D truth", "D model", "S truth", "S model")
 
 
 def evaluate_relight(shard_dir: Path, relit_dir: Path, split: str = "test", lpips=None, lpips_note: str = "",
                      grid_pairs: int = 0) -> dict:
     """Metrics (see the module docstring); with ``grid_pairs`` > 0 also "grid": that many cross-light
-    pairs as an (H * n, W * tiles, 3) uint8 image, columns as in GRID_COLUMNS."""
+    pairs as a labelled uint8 image, columns as in GRID_COLUMNS."""
     relit = read_predictions(Path(relit_dir), split)
     info = json.loads((Path(relit_dir) / "index.json").read_text())
     rows: dict[str, dict[str, list[torch.Tensor]]] = {s: {} for s in ("relight", "reconstruction")}
     resid = {"model": [], "ground_truth": []}
     flip_a, flip_b = [], []
-    grid_rows: list[torch.Tensor] = []
+    grid_rows: list[list[np.ndarray]] = []
     change: dict[str, ChangeR2] = {}
+    identity = {"abs": 0.0, "ref": 0.0}
     n = 0
     for b in make_loader(eval_dataset(shard_dir, split, "relight"), 8):
         keys = b["key"]
@@ -78,7 +86,7 @@ def evaluate_relight(shard_dir: Path, relit_dir: Path, split: str = "test", lpip
             raise DataError(f"{relit_dir}: no relit prediction for pair(s) {missing[:3]}; rerun the relight stage "
                             "on the current shards")
         pred = {k: torch.stack([torch.from_numpy(relit[key][k]).permute(2, 0, 1) for key in keys])
-                for k in ("relit", "diffuse", "specular") if k in relit[keys[0]]}
+                for k in ("relit", "diffuse", "specular", "albedo") if k in relit[keys[0]]}
         same = torch.tensor([json.loads(a)["light"] == json.loads(c)["light"] for a, c in zip(b["meta_a"], b["meta_b"])])
         d_calc = diffuse_calculated(b["ball_b"], b["normal"], b["mask"], b["metallic"])
         for i in torch.nonzero(~same).flatten().tolist()[:max(0, grid_pairs - len(grid_rows))]:
@@ -103,6 +111,11 @@ def evaluate_relight(shard_dir: Path, relit_dir: Path, split: str = "test", lpip
                 r["psnr"].append(psnr_per_image(tonemap01(pred[k]), tonemap01(g)))
             res = (pred["relit"] - compose(b["albedo"], pred["diffuse"], pred["specular"])).abs()
             resid["model"].append(res.flatten(1).mean(1))
+            if "albedo" in pred:  # physics_first: the identity with the albedo the model formed I_relit with
+                m = b["mask"].expand_as(pred["relit"]) > 0.5
+                own = (pred["relit"] - compose(pred["albedo"], pred["diffuse"], pred["specular"])).abs()
+                identity["abs"] += float(own[m].sum())
+                identity["ref"] += float(pred["relit"].abs()[m].sum())
         resid["ground_truth"].append((b["image_b"] - compose(b["albedo"], b["diffuse_b"], b["specular_b"])).abs().flatten(1).mean(1))
         flipped = b["normal"].clone()
         flipped[:, 0] *= -1
@@ -118,6 +131,8 @@ def evaluate_relight(shard_dir: Path, relit_dir: Path, split: str = "test", lpip
         out[setting] = {name: {m: mean(v) for m, v in r.items()} | {"pairs": len(torch.cat(r["psnr"]))}
                         for name, r in rows[setting].items()}
     out["change_r2"] = {name: c.compute() for name, c in change.items()}
+    out["identity_residual_relative"] = identity["abs"] / identity["ref"] if identity["ref"] > 0 else None
+    out["light_following"] = light_following(shard_dir, relit_dir, split)
     out["components_psnr"] = {k: mean(r["psnr"]) for k, r in rows.get("components", {}).items()}
     out["residual_abs_mean"] = {k: mean(v) for k, v in resid.items()}
     a, c = torch.cat(flip_a), torch.cat(flip_b)
@@ -129,7 +144,33 @@ def evaluate_relight(shard_dir: Path, relit_dir: Path, split: str = "test", lpip
         "what": "(R - L) / (R + L) of masked D_calc over right-/left-facing pixels (n_x > 0.2 / < -0.2 of the "
                 "unflipped N); flipping N_x should flip the sign"}
     if grid_rows:
-        out["grid"] = (torch.cat(grid_rows, dim=1).clamp(0, 1).permute(1, 2, 0) * 255 + 0.5).byte().numpy()
+        out["grid"] = labelled_grid(grid_rows, list(GRID_COLUMNS[:len(grid_rows[0])]))
+    return out
+
+
+def light_following(shard_dir: Path, relit_dir: Path, split: str) -> dict:
+    """change_r2 of the model with ground-truth conditions (the relit folder's `<split>_gt`), and the
+    probes' direction and linearity (its `probes`), where the relight stage wrote them."""
+    index = json.loads((Path(relit_dir) / "index.json").read_text())
+    out: dict = {}
+    if f"{split}_gt" in index["splits"]:
+        relit = read_predictions(Path(relit_dir), f"{split}_gt")
+        r2 = ChangeR2()
+        for b in make_loader(eval_dataset(shard_dir, split, "relight"), 8):
+            b = cross_light(b)
+            if b is None:
+                continue
+            missing = [k for k in b["key"] if k not in relit]
+            if missing:
+                raise DataError(f"{relit_dir}: no {split}_gt prediction for pair(s) {missing[:3]}; rerun the relight stage")
+            pred = torch.stack([torch.from_numpy(relit[k]["relit"]).permute(2, 0, 1) for k in b["key"]])
+            r2.update(tonemap01(pred), tonemap01(b["image_b"]), tonemap01(b["image_a"]), b["mask"])
+        out["change_r2_gt_conditions"] = r2.compute()
+    if PROBE_SPLIT in index["splits"]:
+        probes = select_probes(make_loader(eval_dataset(shard_dir, split, "relight"), 8), PROBE_COUNT_MAX)
+        relit = read_predictions(Path(relit_dir), PROBE_SPLIT)
+        probes = [p for p in probes if probe_key(p, "target") in relit]
+        out |= probe_scores(relit, probes)
     return out
 
 
@@ -150,6 +191,13 @@ def markdown_table(result: dict, split: str) -> str:
     r2 = result.get("change_r2", {})
     lines += ["", "change_r2 (1 - sum (dp - dt)^2 / sum dt^2 of the change from the input; copy 0, truth 1): " +
               "; ".join(f"{names[k]} {fmt(v['full'])} full, {fmt(v['mask'])} mask" for k, v in r2.items() if k in names)]
+    lf = result.get("light_following", {})
+    if lf:
+        gt_r2 = lf.get("change_r2_gt_conditions") or {}
+        lines += ["", f"Light-following of the model: change_r2 with ground-truth conditions {fmt(gt_r2.get('full'))} full, "
+                      f"{fmt(gt_r2.get('mask'))} mask; direction {fmt(lf.get('direction'))} over {lf.get('probes', 0)} probe "
+                      f"images (chance 0.5); linearity {fmt(lf.get('linearity'))} (truth 2); identity "
+                      f"|I - A_x D - S| / |I| on the mask {fmt(result.get('identity_residual_relative'))}."]
     lines += ["", f"- LPIPS: {result['lpips_note']}.",
               f"- D_pred PSNR {fmt(comp.get('diffuse'))}, S_pred PSNR {fmt(comp.get('specular'))} (tone-mapped).",
               f"- Residual mean |I - A D - S| (linear, ground-truth A): model {fmt(res.get('model'))}, "

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from pilight.eval.light_following import (ChangeR2, direction_from_angles, direction_score, linearity, lr_asymmetry,
-                                          probe_balls, select_probes, sides_visible)
+from pilight.eval.light_following import (PROBE_LIGHTS, ChangeR2, cross_light, direction_from_angles, direction_score,
+                                          linearity, lr_asymmetry, probe_balls, probe_batch, probe_key, probe_scores,
+                                          select_probes, sides_visible)
 from pilight.physics.calculated import diffuse_calculated, specular_calculated
 from pilight.physics.shading import ball_from_direction
 
@@ -93,3 +94,54 @@ def test_specular_lookup_is_zero_for_a_lambertian_ball_and_scaled_by_metal_fresn
     s_metal = specular_calculated(gray, lamb, n, mask, torch.full_like(n, 0.5), torch.ones_like(mask))
     assert s_diel.max() > 0
     torch.testing.assert_close(s_metal, s_diel * 0.5 / 0.04 * 0.5)
+
+
+def _probe(scene: str = "s", light: int = 0, size: int = 16) -> dict:
+    n, mask = _sphere_normals(size)
+    meta = json.dumps({"scene": scene, "view": 0, "light": light})
+    return {"key": [f"{scene}_v00_l{light:02d}_to_l01"], "meta_a": [meta], "meta_b": [meta],
+            "normal": n, "mask": mask, "albedo": torch.full((1, 3, size, size), 0.5) * mask,
+            "metallic": torch.zeros(1, 1, size, size), "image_a": torch.rand(1, 3, size, size),
+            "ball_b": ball_from_direction([0.2, 0.6, 0.7], intensity=2.0, size=8),
+            "ball_lambertian_b": ball_from_direction([0.2, 0.6, 0.7], intensity=1.5, size=8)}
+
+
+def test_probe_batch_holds_the_image_under_each_probe_light_with_matching_twins():
+    probe = _probe()
+    batch = probe_batch(probe)
+    assert batch["ball_b"].shape[0] == len(PROBE_LIGHTS) and batch["key"] == probe["key"] * len(PROBE_LIGHTS)
+    i = {n: k for k, n in enumerate(PROBE_LIGHTS)}
+    torch.testing.assert_close(batch["ball_b"][i["target_x2"]], 2 * probe["ball_b"][0])
+    torch.testing.assert_close(batch["ball_lambertian_b"][i["target_x2"]], 2 * probe["ball_lambertian_b"][0])
+    torch.testing.assert_close(batch["ball_lambertian_b"][i["left"]], batch["ball_b"][i["left"]])  # analytic: no highlight
+    torch.testing.assert_close(batch["image_a"][3], probe["image_a"][0])
+
+
+def _relit_by(shade, probes):
+    """Probe outputs (probe_key -> {"relit": H x W x 3}) of a model whose relit image is shade(batch)."""
+    out = {}
+    for p in probes:
+        b = probe_batch(p)
+        relit = shade(b)
+        for k, light in enumerate(PROBE_LIGHTS):
+            out[probe_key(p, light)] = {"relit": relit[k].permute(1, 2, 0).numpy()}
+    return out
+
+
+def test_probe_scores_physics_follows_the_light_and_copying_does_not():
+    probes = [_probe("s1"), _probe("s2")]
+    physics = _relit_by(lambda b: b["albedo"] * diffuse_calculated(b["ball_b"], b["normal"], b["mask"], b["metallic"]), probes)
+    scores = probe_scores(physics, probes)
+    assert scores["probes"] == 2 and scores["direction"] == 1.0
+    assert scores["linearity"] == pytest.approx(2.0, rel=1e-5)
+    copying = probe_scores(_relit_by(lambda b: b["image_a"].clone(), probes), probes)
+    assert copying["direction"] == 0.0 and copying["linearity"] == pytest.approx(1.0)
+    assert probe_scores({}, [])["direction"] is None
+
+
+def test_cross_light_keeps_only_pairs_whose_lights_differ():
+    meta = lambda light: json.dumps({"scene": "s", "view": 0, "light": light})
+    batch = {"key": ["aa", "ab"], "meta_a": [meta(0), meta(0)], "meta_b": [meta(0), meta(1)], "x": torch.arange(2)}
+    out = cross_light(batch)
+    assert out["key"] == ["ab"] and out["x"].tolist() == [1]
+    assert cross_light({"key": ["aa"], "meta_a": [meta(0)], "meta_b": [meta(0)], "x": torch.arange(1)}) is None
