@@ -8,17 +8,19 @@ image and on the mask (pilight.eval.light_following), and relight PSNR / SSIM (t
 tone-mapped space), beside "copy the input". With --pred, the same candidates with the conditions
 (albedo, normal, metallic) taken from stage-1 predictions: what stage-1 errors cost each form.
 
-Candidates (A, N, m: the conditions; D, S: the target light's ground truth; "cell" = the correction
-that a perfect network at one value per 4x4 codec cell would output, as the relit gain target):
-  A D_calc                     Lambertian lookup alone
-  A D_calc + S_calc            + the specular lookup of (gray - Lambertian ball), no metal Fresnel
-  A D_calc + F S_calc          + the crude metal Fresnel (pilight.physics.calculated)
-  A D_calc + S                 the true specular
-  A D + F S_calc               the true diffuse shading
-  A cell(D) + cell(S)          D and S as display-space gains on D_calc and F S_calc, cell resolution
-  A cell(D_eff) + cell(S)      D_eff = (I_b - S) / A: the shading that the CONDITIONING albedo needs
-  A cell(D) + S, A D + cell(S) which of the two loses at cell resolution
-  A D_eff + F S_calc           the effective shading at full resolution, physics specular
+Candidates (A, N, m: the conditions; D, S: the target light's ground truth; "cell" = what a
+perfect network at one value per 4x4 codec cell would output):
+  A D_calc, + S_calc, + F S_calc  Lambertian lookup of the target ball; + the specular lookup of
+                                  (gray - Lambertian ball); + the crude metal Fresnel (physics.calculated)
+  A D_calc + S, A D + F S_calc    the true specular / the true diffuse shading
+  A cell(D) + cell(S), A D + cell(S)   display-space gains on D_calc and F S_calc, cell resolution
+  I_a cell(G)                     the display-space gain on the input at cell resolution (relit_target gain)
+  PF <albedo>[, smoothed]: ...    the physics-first form (pilight.relight.physics_first): I = A_x D + S,
+                                  D and S as gains g_D, g_S on D_calc and S_calc. anchor = zero gains
+                                  (physics alone); cell g_D, cell g_S = perfect gains at cell resolution.
+                                  A_x: effective (the input's own ball), effective with the ball estimated
+                                  from the input by an SH fit (pilight.physics.source_light: what a photo
+                                  gets), or the conditioning albedo. smoothed: lookups cell-smoothed.
 """
 
 from __future__ import annotations
@@ -37,7 +39,10 @@ from pilight.eval.light_following import ChangeR2
 from pilight.eval.metrics import psnr_per_image, ssim_per_image
 from pilight.eval.relight import tonemap01
 from pilight.physics.calculated import diffuse_calculated, specular_calculated
-from pilight.train.relight import choose_intrinsics, gain_decode, gain_encode, optional_predictions
+from pilight.physics.source_light import estimate_source_ball
+from pilight.relight.conditions import choose_intrinsics, optional_predictions
+from pilight.relight.encoding import gain_decode, gain_encode
+from pilight.relight.physics_first import anchors, compose_relit, diffuse_target, gain_of
 
 CELL = 4
 
@@ -56,14 +61,29 @@ def candidates(b: dict, c: dict) -> dict[str, torch.Tensor]:
     d_calc = diffuse_calculated(b["ball_b"], N, mask, m)
     s_raw = specular_calculated(b["ball_b"], lamb, N, mask, A, torch.zeros_like(m))
     s_f = specular_calculated(b["ball_b"], lamb, N, mask, A, m)
-    D, S = b["diffuse_b"].float(), b["specular_b"].float()
-    d_eff = ((b["image_b"].float() - S) / A.clamp_min(1e-3)).clamp_min(0)
-    return {"A D_calc": A * d_calc, "A D_calc + S_calc": A * d_calc + s_raw, "A D_calc + F S_calc": A * d_calc + s_f,
-            "A D_calc + S": A * d_calc + S, "A D + F S_calc": A * D + s_f,
-            "A cell(D) + cell(S)": A * cell_gain(D, d_calc) + cell_gain(S, s_f),
-            "A cell(D_eff) + cell(S)": A * cell_gain(d_eff, d_calc) + cell_gain(S, s_f),
-            "A cell(D) + S": A * cell_gain(D, d_calc) + S, "A D + cell(S)": A * D + cell_gain(S, s_f),
-            "A D_eff + F S_calc": A * d_eff + s_f}
+    D, S, I_a = b["diffuse_b"].float(), b["specular_b"].float(), b["image_a"].float()
+    out = {"A D_calc": A * d_calc, "A D_calc + S_calc": A * d_calc + s_raw, "A D_calc + F S_calc": A * d_calc + s_f,
+           "A D_calc + S": A * d_calc + S, "A D + F S_calc": A * D + s_f,
+           "A cell(D) + cell(S)": A * cell_gain(D, d_calc) + cell_gain(S, s_f),
+           "A D + cell(S)": A * D + cell_gain(S, s_f), "I_a cell(G)": cell_gain(b["image_b"].float(), I_a)}
+    zero = torch.zeros_like(I_a)
+    cs = lambda g: cell_smooth(cell_mean(g, CELL), CELL)
+    sources = {"effective": (b["ball_a"], b.get("ball_lambertian_a")),
+               "effective, SH source": (estimate_source_ball(I_a, A, N, mask, b["ball_a"].shape[-1], m), None),
+               "conditioning": (None, None)}
+    for name, (ball_a, lamb_a) in sources.items():
+        for smooth in (1, CELL):
+            anc = anchors(I_a, c, mask, b["ball_b"], b.get("ball_lambertian_b"), ball_a=ball_a, lambertian_a=lamb_a,
+                          albedo_source="conditioning" if name == "conditioning" else "effective", smooth_cell=smooth)
+            tag = f"PF {name}{', smoothed' if smooth > 1 else ''}"
+            g_d = gain_of(diffuse_target(b["image_b"], S, anc.albedo), anc.d_calc, anc.eps)
+            g_s = gain_of(S, anc.s_calc, anc.eps)
+            out[f"{tag}: anchor"] = compose_relit(anc, zero, zero)["relit"]
+            out[f"{tag}: cell g_D, cell g_S"] = compose_relit(anc, cs(g_d), cs(g_s))["relit"]
+            if smooth > 1 and name == "effective":
+                out[f"{tag}: cell g_D, g_S = 0"] = compose_relit(anc, cs(g_d), zero)["relit"]
+                out[f"{tag}: g_D = 0, cell g_S"] = compose_relit(anc, zero, cs(g_s))["relit"]
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:

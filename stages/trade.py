@@ -10,8 +10,9 @@ test images / pairs (see pilight/eval/trade.py).  Writes
 - metrics/trade.json                  every point (dvc metrics), seconds per image and accuracy;
 - plots/trade_intrinsics.json, plots/trade_relight.json and their *_pareto*.json fronts (dvc plots);
 - reports/trade.md, reports/trade_intrinsics.png, reports/trade_relight.png;
-- reports/relit_lights.png: one test image relit under `evaluate.relight_lights` analytic lights
-  (physics.ball_from_light) around it, with each light's ball.
+- reports/relit_lights.png: RELIT_LIGHTS_ROWS test images, one row each, relit under
+  `evaluate.relight_lights` analytic lights swept around them, each column's ball above it
+  (pilight/eval/relit_lights.py).
 
 Timings vary between runs, so this stage is not byte-deterministic; the accuracy columns are.
 """
@@ -20,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
@@ -59,31 +59,7 @@ def chunks(batch: dict, size: int):
         yield {k: v[s:s + size] for k, v in batch.items()}
 
 
-def relit_under_lights(task, pair: dict, intr: dict, sp, count: int, seed: int):
-    """input | relit under `count` analytic lights from left to right (row 1); below each, its ball."""
-    import numpy as np
-    import torch
-
-    from pilight.physics import ball_from_light
-    from pilight.train.intrinsics import to_uint8
-
-    size = pair["ball_b"].shape[-1]
-    peak = float(pair["ball_b"].amax())  # match the dataset's light level: ball peak = 0.5 (I + ambient)
-    intensity = 2 * peak / 1.03
-    az = torch.deg2rad(torch.linspace(-120.0, 120.0, count))
-    el = math.radians(30.0)
-    dirs = torch.stack([math.cos(el) * torch.sin(az), torch.full_like(az, math.sin(el)), math.cos(el) * torch.cos(az)], 1)
-    balls = ball_from_light(direction=dirs, intensity=intensity, ambient=0.03 * intensity, size=size)
-    rep = {k: (v.expand(count, *v.shape[1:]) if hasattr(v, "shape") else v * count) for k, v in pair.items()}
-    rep["ball_b"] = balls
-    out = task.predict(rep, sp, torch.Generator().manual_seed(seed), {k: v.expand(count, *v.shape[1:]) for k, v in intr.items()})
-    h = pair["image_a"].shape[-2]
-    u8 = lambda x: to_uint8(x.cpu(), hdr=True)
-    top = [u8(pair["image_a"][0])] + [u8(out["relit"][i]) for i in range(count)]
-    pad = lambda b: np.pad(b, (((h - b.shape[0]) // 2, h - b.shape[0] - (h - b.shape[0]) // 2),
-                               ((h - b.shape[1]) // 2, h - b.shape[1] - (h - b.shape[1]) // 2), (0, 0)))
-    bottom = [np.zeros_like(top[0])] + [pad(u8(balls[i])) for i in range(count)]  # pairs carry only the target ball
-    return np.concatenate([np.concatenate(top, 1), np.concatenate(bottom, 1)], 0)
+RELIT_LIGHTS_ROWS = 4
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -113,9 +89,11 @@ def main(argv: list[str] | None = None) -> int:
     from pilight.eval import trade
     from pilight.eval.metrics import angular_errors, masked_mae, masked_psnr, psnr_per_image, ssim_per_image
     from pilight.eval.relight import tonemap01
+    from pilight.eval.relit_lights import relit_lights_grid
     from pilight.train.build import ModelError, load_model
     from pilight.train.intrinsics import IntrinsicsTask
-    from pilight.train.relight import RelightTask, choose_intrinsics, optional_predictions
+    from pilight.relight.conditions import choose_intrinsics, optional_predictions
+    from pilight.train.relight import RelightTask
 
     tp, split = ev.trade, ip2.split
     try:
@@ -170,8 +148,10 @@ def main(argv: list[str] | None = None) -> int:
     trade.mark_fronts(rows1, {k: hi for k, (_, hi) in INTRINSICS_METRICS.items()})
     trade.mark_fronts(rows2, {k: hi for k, (_, hi) in RELIGHT_METRICS.items()})
 
-    grid = relit_under_lights(t2, {k: v[:1] for k, v in pairs.items()}, {k: v[:1] for k, v in intr.items()},
-                              ip2, ev.relight_lights, base.seed)
+    rows = min(RELIT_LIGHTS_ROWS, n2)
+    grid = relit_lights_grid(lambda batch, c: t2.predict(batch, ip2, torch.Generator().manual_seed(base.seed), c),
+                             [({k: v[i:i + 1] for k, v in pairs.items()}, {k: v[i:i + 1] for k, v in intr.items()})
+                              for i in range(rows)], ev.relight_lights)
 
     for d in (args.metrics.parent, args.plots, args.reports):
         d.mkdir(parents=True, exist_ok=True)
