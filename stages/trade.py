@@ -10,7 +10,7 @@ test images / pairs (see pilight/eval/trade.py).  Writes
 - metrics/trade.json                  every point (dvc metrics), seconds per image and accuracy;
 - plots/trade_intrinsics.json, plots/trade_relight.json and their *_pareto*.json fronts (dvc plots);
 - reports/trade.md, reports/trade_intrinsics.png, reports/trade_relight.png;
-- reports/relit_lights.png: RELIT_LIGHTS_ROWS test images, one row each, relit under
+- reports/relit_lights.png: RELIT_LIGHTS_ROWS test views (the first cross-light pair of each), one row each, relit under
   `evaluate.relight_lights` analytic lights swept around them, each column's ball above it
   (pilight/eval/relit_lights.py).
 
@@ -148,10 +148,20 @@ def main(argv: list[str] | None = None) -> int:
     trade.mark_fronts(rows1, {k: hi for k, (_, hi) in INTRINSICS_METRICS.items()})
     trade.mark_fronts(rows2, {k: hi for k, (_, hi) in RELIGHT_METRICS.items()})
 
-    rows = min(RELIT_LIGHTS_ROWS, n2)
+    views: set[tuple] = set()
+
+    def new_view(b, i):  # one row per test view: the first cross-light pair of each
+        m = json.loads(b["meta_a"][i])
+        if not cross(b, i) or (m["scene"], m["view"]) in views:
+            return False
+        views.add((m["scene"], m["view"]))
+        return True
+
+    shown = first_n(make_loader(eval_dataset(args.shards, split, "relight"), 8), RELIT_LIGHTS_ROWS, new_view)
+    shown_intr = choose_intrinsics(shown, torch.full((len(shown["key"]),), preds is not None), preds)
     grid = relit_lights_grid(lambda batch, c: t2.predict(batch, ip2, torch.Generator().manual_seed(base.seed), c),
-                             [({k: v[i:i + 1] for k, v in pairs.items()}, {k: v[i:i + 1] for k, v in intr.items()})
-                              for i in range(rows)], ev.relight_lights)
+                             [({k: v[i:i + 1] for k, v in shown.items()}, {k: v[i:i + 1] for k, v in shown_intr.items()})
+                              for i in range(len(shown["key"]))], ev.relight_lights)
 
     for d in (args.metrics.parent, args.plots, args.reports):
         d.mkdir(parents=True, exist_ok=True)
