@@ -24,10 +24,10 @@ asymmetry can show at all.
 from __future__ import annotations
 
 import json
-import math
 
 import torch
 
+from pilight.lights import direction as direction_from_angles  # azimuth 0 = from the camera, +90 = camera-right
 from pilight.physics.shading import ball_from_direction
 
 PROBE_AZIMUTH_DEG = 60.0    # from the view axis toward camera-right (+) or camera-left (-)
@@ -35,13 +35,6 @@ PROBE_ELEVATION_DEG = 30.0  # above the camera's horizon
 PROBE_SIDE_SHARE = 0.05     # of the mask, facing each side
 PROBE_LIGHTS = ("left", "right", "target", "target_x2")
 SIDE_NORMAL_X = 0.2         # n_x beyond which a pixel faces right (or left, negated)
-
-
-def direction_from_angles(azimuth_deg: float, elevation_deg: float) -> torch.Tensor:
-    """Camera-space unit vector TOWARD the light: azimuth 0 = from the camera (+z), +90 = from
-    camera-right (+x), -90 = camera-left; elevation + = from above (+y)."""
-    az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
-    return torch.tensor([math.sin(az) * math.cos(el), math.sin(el), math.cos(az) * math.cos(el)])
 
 
 def lr_asymmetry(d: torch.Tensor, normal: torch.Tensor, mask: torch.Tensor, thr: float = SIDE_NORMAL_X,

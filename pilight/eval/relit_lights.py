@@ -4,13 +4,12 @@ ball. The picture that shows at a glance whether the relit image follows the lig
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 
 from pilight.data.schema import to_uint8
 from pilight.eval.grids import labelled_grid
+from pilight.lights import direction
 from pilight.physics import ball_from_light
 
 SWEEP_AZIMUTH_DEG = 120.0  # the lights run from -120 (camera-left, behind) to +120 (camera-right)
@@ -20,11 +19,8 @@ HEADER_PEAK = 0.9          # the header balls' brightest pixel (display), whatev
 
 def sweep_directions(count: int) -> tuple[torch.Tensor, list[float]]:
     """(count, 3) camera-space unit vectors toward the lights, and their azimuths in degrees."""
-    az = torch.linspace(-SWEEP_AZIMUTH_DEG, SWEEP_AZIMUTH_DEG, count)
-    el = math.radians(SWEEP_ELEVATION_DEG)
-    rad = torch.deg2rad(az)
-    dirs = torch.stack([math.cos(el) * torch.sin(rad), torch.full_like(rad, math.sin(el)), math.cos(el) * torch.cos(rad)], 1)
-    return dirs, az.tolist()
+    az = torch.linspace(-SWEEP_AZIMUTH_DEG, SWEEP_AZIMUTH_DEG, count).tolist()
+    return torch.stack([direction(a, SWEEP_ELEVATION_DEG) for a in az]), az
 
 
 def sweep_balls(pair: dict, count: int) -> torch.Tensor:

@@ -21,7 +21,8 @@ import torch
 from .envmap import BALL_ALBEDO, ball_normals
 
 MIN_PIXELS = 32     # fewer usable pixels than this cannot pin nine coefficients down
-RIDGE = 1e-6        # Tikhonov weight, relative to the normal matrix's mean diagonal (front-hemisphere normals leave the basis nearly collinear)
+RIDGE = 1e-6        # Tikhonov weight, relative to the normal matrix's mean diagonal (front-facing normals
+                    # leave the basis nearly collinear)
 METALLIC_MAX = 0.5  # pixels more metallic than this have no diffuse lobe to fit
 ALBEDO_MIN = 0.02   # black pixels carry no shading
 
@@ -36,28 +37,42 @@ def sh_basis(normal: torch.Tensor) -> torch.Tensor:
     return torch.stack([torch.ones_like(x), x, y, z, x * y, y * z, x * z, x * x - y * y, 3 * z * z - 1], 1)
 
 
-def fit_diffuse_sh(image: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor, mask: torch.Tensor,
-                   metallic: torch.Tensor | None = None) -> torch.Tensor:
-    """(B, 3, 9) coefficients c with image ~ albedo * sum_k c_k Y_k(normal) on usable pixels: masked,
-    albedo above ALBEDO_MIN, and dielectric (metallic < METALLIC_MAX) unless fewer than MIN_PIXELS are."""
+def fit_diffuse_sh_found(image: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor, mask: torch.Tensor,
+                         metallic: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B, 3, 9) coefficients c with image ~ albedo * sum_k c_k Y_k(normal) on usable pixels (masked,
+    albedo above ALBEDO_MIN, and dielectric (metallic < METALLIC_MAX) unless fewer than MIN_PIXELS
+    are), and (B,) usable-pixel counts; an image with fewer than MIN_PIXELS keeps c = 0."""
     usable = (mask[:, 0] > 0.5) & (albedo.float().mean(1) > ALBEDO_MIN)
     dielectric = usable & (metallic[:, 0] < METALLIC_MAX) if metallic is not None else usable
     basis = sh_basis(normal.float())
     out = torch.zeros(image.shape[0], 3, 9)
+    counts = torch.zeros(image.shape[0], dtype=torch.long)
     for i in range(image.shape[0]):
         # Dielectric pixels when there are enough; an all-metal image is fitted on every usable pixel
         # (its highlights then stand in for the light: the best this image says about it).
         sel = dielectric[i] if int(dielectric[i].sum()) >= MIN_PIXELS else usable[i]
-        if int(sel.sum()) < MIN_PIXELS:
-            raise SourceLightError(f"image {i}: {int(sel.sum())} usable pixels (masked, dielectric, albedo > "
-                                   f"{ALBEDO_MIN}); at least {MIN_PIXELS} are needed to estimate its light")
+        counts[i] = int(sel.sum())
+        if counts[i] < MIN_PIXELS:
+            continue
         y_k = basis[i][:, sel].T.double()  # (P, 9)
         for c in range(3):
             x = albedo[i, c][sel].double()[:, None] * y_k
             gram = x.T @ x
             gram = gram + RIDGE * gram.diagonal().mean() * torch.eye(9, dtype=gram.dtype)
             out[i, c] = torch.linalg.solve(gram, x.T @ image[i, c][sel].double()).float()
-    return out
+    return out, counts
+
+
+def fit_diffuse_sh(image: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor, mask: torch.Tensor,
+                   metallic: torch.Tensor | None = None) -> torch.Tensor:
+    """fit_diffuse_sh_found's coefficients; SourceLightError naming the first image with too few pixels."""
+    coeffs, counts = fit_diffuse_sh_found(image, albedo, normal, mask, metallic)
+    short = (counts < MIN_PIXELS).nonzero().flatten().tolist()
+    if short:
+        i = short[0]
+        raise SourceLightError(f"image {i}: {int(counts[i])} usable pixels (masked, dielectric, albedo > "
+                               f"{ALBEDO_MIN}); at least {MIN_PIXELS} are needed to estimate its light")
+    return coeffs
 
 
 def sh_ball(coeffs: torch.Tensor, size: int) -> torch.Tensor:
@@ -78,13 +93,6 @@ def estimate_source_balls(image: torch.Tensor, albedo: torch.Tensor, normal: tor
                           size: int, metallic: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Per image: (balls (B, 3, size, size), found (B,) bool); an image with too few usable pixels
     gets a black ball and found = False, for the caller to handle (none is guessed)."""
-    balls = torch.zeros(image.shape[0], 3, size, size)
-    found = torch.zeros(image.shape[0], dtype=torch.bool)
-    for i in range(image.shape[0]):
-        one = lambda x: None if x is None else x[i:i + 1]
-        try:
-            balls[i] = estimate_source_ball(one(image), one(albedo), one(normal), one(mask), size, one(metallic))[0]
-            found[i] = True
-        except SourceLightError:
-            pass
-    return balls, found
+    coeffs, counts = fit_diffuse_sh_found(image, albedo, normal, mask, metallic)
+    # one image at a time: a batched einsum sums in another order, and the relit outputs' bytes would move
+    return torch.cat([sh_ball(c[None], size) for c in coeffs]), counts >= MIN_PIXELS

@@ -55,7 +55,7 @@ import torch
 
 from pilight.diffusion.codec import cell_smooth
 from pilight.physics.calculated import diffuse_calculated, specular_calculated
-from pilight.physics.envmap import BALL_ALBEDO
+from pilight.physics.envmap import BALL_ALBEDO, ball_normals
 from pilight.physics.source_light import estimate_source_balls
 
 EPS_LEVEL = 0.05  # eps_b / level(ball_b): 5% of the light's mean shading
@@ -67,11 +67,8 @@ A_MIN = 0.02      # albedo floor of the D_eff division (a black pixel needs no s
 def light_level(ball: torch.Tensor) -> torch.Tensor:
     """(B, 1, 1, 1): the ball's mean radiance over its disk / BALL_ALBEDO, i.e. the mean diffuse
     shading a sphere receives; the unit every map of this light is divided by. Floor 1e-6."""
-    h, w = ball.shape[-2:]
-    y, x = torch.meshgrid((torch.arange(h, device=ball.device) + 0.5) / h * 2 - 1,
-                          (torch.arange(w, device=ball.device) + 0.5) / w * 2 - 1, indexing="ij")
-    disk = ((x ** 2 + y ** 2) < 1).to(ball.dtype)
-    mean = (ball.float() * disk).sum((-1, -2)).mean(1) / disk.sum()
+    _, disk = ball_normals(*ball.shape[-2:], device=ball.device)
+    mean = (ball.float() * disk[0]).sum((-1, -2)).mean(1) / disk.sum()
     return (mean / BALL_ALBEDO).clamp_min(1e-6)[:, None, None, None]
 
 

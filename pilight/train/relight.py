@@ -158,6 +158,11 @@ class RelightTask:
             return y
         return torch.cat([y[:, :r], out[:, None], y[:, r + 1:]], dim=1)
 
+    @property
+    def _cell(self) -> int:
+        """Pixels per side of one physics-first output value: the codec cell with relit_resolution cell, else 1."""
+        return self.stack.codec.factor if self.p.relit_resolution == "cell" else 1
+
     def _conditions(self, batch: dict, intr: dict[str, torch.Tensor], dev) -> tuple[dict, pf.Anchors | None]:
         """Condition maps (and, with physics_first, the physics anchors) of a pairs batch."""
         image_a, mask, ball_b = batch["image_a"].to(dev), batch["mask"].to(dev), batch["ball_b"].to(dev)
@@ -171,7 +176,7 @@ class RelightTask:
         anc = pf.anchors(image_a, intr, mask, ball_b, batch["ball_lambertian_b"].to(dev) if "ball_lambertian_b" in batch
                          else None, albedo_source=self.p.albedo_source,
                          ball_a=opt("ball_a"), lambertian_a=opt("ball_lambertian_a"),
-                         smooth_cell=self.stack.codec.factor if self.p.relit_resolution == "cell" else 1)
+                         smooth_cell=self._cell)
         return physics_first_images(image_a, intr, ball_b, mask, anc), anc
 
     def _physics_first_targets(self, batch: dict, anc: pf.Anchors, y_a: torch.Tensor, dev) -> torch.Tensor:
@@ -181,15 +186,13 @@ class RelightTask:
         g_r = gain_encode(schema.to_model("image", image_b), y_a) * (1 - mask)
         g_d = pf.gain_of(pf.diffuse_target(image_b, spec_b, anc.albedo), anc.d_calc, anc.eps)
         g_s = pf.gain_of(spec_b, anc.s_calc, anc.eps)
-        cell = self.stack.codec.factor if self.p.relit_resolution == "cell" else 1
-        return torch.stack([cell_mean(g, cell) for g in (g_r, g_d, g_s)], dim=1)
+        return torch.stack([cell_mean(g, self._cell) for g in (g_r, g_d, g_s)], dim=1)
 
     def _physics_first_outputs(self, y: torch.Tensor, anc: pf.Anchors, y_a: torch.Tensor,
                                mask: torch.Tensor) -> dict[str, torch.Tensor]:
         """Decoded gains (B, 3, 3, H, W) -> linear {relit, diffuse, specular, albedo}: A_x D + S on the mask,
         the relit branch's gain on the input off it."""
-        cell = self.stack.codec.factor if self.p.relit_resolution == "cell" else 1
-        g_r, g_d, g_s = (cell_smooth(y[:, i].float(), cell) for i in range(3))
+        g_r, g_d, g_s = (cell_smooth(y[:, i].float(), self._cell) for i in range(3))
         out = pf.compose_relit(anc, g_d, g_s)
         off = schema.from_model("image", gain_decode(g_r, y_a))
         out["relit"] = torch.where(mask > 0.5, out["relit"], off)
