@@ -13,6 +13,8 @@ perfect network at one value per 4x4 codec cell would output):
   A D_calc, + S_calc, + F S_calc  Lambertian lookup of the target ball; + the specular lookup of
                                   (gray - Lambertian ball); + the crude metal Fresnel (physics.calculated)
   A D_calc + S, A D + F S_calc    the true specular / the true diffuse shading
+  A D_calc + S_ggx, A D + S_ggx   the microfacet specular of the target ball's dominant light with the
+                                  conditions' roughness and Fresnel (pilight.physics.specular_model)
   A cell(D) + cell(S), A D + cell(S)   display-space gains on D_calc and F S_calc, cell resolution
   I_a cell(G)                     the display-space gain on the input at cell resolution (relit_target gain)
   PF <albedo>[, smoothed]: ...    the physics-first form (pilight.relight.physics_first): I = A_x D + S,
@@ -21,6 +23,7 @@ perfect network at one value per 4x4 codec cell would output):
                                   A_x: effective (the input's own ball), effective with the ball estimated
                                   from the input by an SH fit (pilight.physics.source_light: what a photo
                                   gets), or the conditioning albedo. smoothed: lookups cell-smoothed.
+                                  GGX S: S_calc (and S_calc_a) from pilight.physics.specular_model.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ from pilight.eval.metrics import psnr_per_image, ssim_per_image
 from pilight.eval.relight import tonemap01
 from pilight.physics.calculated import diffuse_calculated, specular_calculated
 from pilight.physics.source_light import estimate_source_ball
+from pilight.physics.specular_model import specular_from_ball
 from pilight.relight.conditions import choose_intrinsics, optional_predictions
 from pilight.relight.encoding import gain_decode, gain_encode
 from pilight.relight.physics_first import anchors, compose_relit, diffuse_target, gain_of
@@ -62,8 +66,10 @@ def candidates(b: dict, c: dict) -> dict[str, torch.Tensor]:
     s_raw = specular_calculated(b["ball_b"], lamb, N, mask, A, torch.zeros_like(m))
     s_f = specular_calculated(b["ball_b"], lamb, N, mask, A, m)
     D, S, I_a = b["diffuse_b"].float(), b["specular_b"].float(), b["image_a"].float()
+    s_ggx = specular_from_ball(lamb, N, c["roughness"], A, m) * mask
     out = {"A D_calc": A * d_calc, "A D_calc + S_calc": A * d_calc + s_raw, "A D_calc + F S_calc": A * d_calc + s_f,
-           "A D_calc + S": A * d_calc + S, "A D + F S_calc": A * D + s_f,
+           "A D_calc + S_ggx": A * d_calc + s_ggx, "A D_calc + S": A * d_calc + S, "A D + F S_calc": A * D + s_f,
+           "A D + S_ggx": A * D + s_ggx,
            "A cell(D) + cell(S)": A * cell_gain(D, d_calc) + cell_gain(S, s_f),
            "A D + cell(S)": A * D + cell_gain(S, s_f), "I_a cell(G)": cell_gain(b["image_b"].float(), I_a)}
     zero = torch.zeros_like(I_a)
@@ -71,18 +77,21 @@ def candidates(b: dict, c: dict) -> dict[str, torch.Tensor]:
     sources = {"effective": (b["ball_a"], b.get("ball_lambertian_a")),
                "effective, SH source": (estimate_source_ball(I_a, A, N, mask, b["ball_a"].shape[-1], m), None),
                "conditioning": (None, None)}
-    for name, (ball_a, lamb_a) in sources.items():
-        for smooth in (1, CELL):
-            anc = anchors(I_a, c, mask, b["ball_b"], b.get("ball_lambertian_b"), ball_a=ball_a, lambertian_a=lamb_a,
-                          albedo_source="conditioning" if name == "conditioning" else "effective", smooth_cell=smooth)
-            tag = f"PF {name}{', smoothed' if smooth > 1 else ''}"
-            g_d = gain_of(diffuse_target(b["image_b"], S, anc.albedo), anc.d_calc, anc.eps)
-            g_s = gain_of(S, anc.s_calc, anc.eps)
-            out[f"{tag}: anchor"] = compose_relit(anc, zero, zero)["relit"]
-            out[f"{tag}: cell g_D, cell g_S"] = compose_relit(anc, cs(g_d), cs(g_s))["relit"]
-            if smooth > 1 and name == "effective":
-                out[f"{tag}: cell g_D, g_S = 0"] = compose_relit(anc, cs(g_d), zero)["relit"]
-                out[f"{tag}: g_D = 0, cell g_S"] = compose_relit(anc, zero, cs(g_s))["relit"]
+    settings = [(name, smooth, "lookup") for name in sources for smooth in (1, CELL)]
+    settings += [(name, CELL, "ggx") for name in sources]
+    for name, smooth, spec in settings:
+        ball_a, lamb_a = sources[name]
+        anc = anchors(I_a, c, mask, b["ball_b"], b.get("ball_lambertian_b"), ball_a=ball_a, lambertian_a=lamb_a,
+                      albedo_source="conditioning" if name == "conditioning" else "effective", smooth_cell=smooth,
+                      specular=spec)
+        tag = f"PF {name}{', smoothed' if smooth > 1 else ''}{', GGX S' if spec == 'ggx' else ''}"
+        g_d = gain_of(diffuse_target(b["image_b"], S, anc.albedo), anc.d_calc, anc.eps)
+        g_s = gain_of(S, anc.s_calc, anc.eps)
+        out[f"{tag}: anchor"] = compose_relit(anc, zero, zero)["relit"]
+        out[f"{tag}: cell g_D, cell g_S"] = compose_relit(anc, cs(g_d), cs(g_s))["relit"]
+        if smooth > 1 and name.startswith("effective"):
+            out[f"{tag}: cell g_D, g_S = 0"] = compose_relit(anc, cs(g_d), zero)["relit"]
+            out[f"{tag}: g_D = 0, cell g_S"] = compose_relit(anc, zero, cs(g_s))["relit"]
     return out
 
 

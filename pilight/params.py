@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 # The HDRIs Blender ships in datafiles/studiolights/world (no download needed).
 BUNDLED_HDRIS = ("city", "courtyard", "forest", "interior", "night", "studio", "sunrise", "sunset")
@@ -24,7 +24,17 @@ class ParamsError(ValueError):
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan=False: a NaN or Inf anywhere (a light's elevation, a CFG scale) is refused by key,
+    # not found later as NaN lights in scene.json or saturated images written with exit 0.
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_bool_numbers(cls, v, info: ValidationInfo):
+        """YAML's true/false are ints to pydantic's lax mode, so `scenes.train: true` would count 1."""
+        if isinstance(v, bool) and cls.model_fields[info.field_name].annotation in (int, float, int | None, float | None):
+            raise ValueError("a boolean where a number is expected")
+        return v
 
 
 class BaseParams(_Section):
@@ -139,8 +149,15 @@ class SceneParams(_Section):
         return v
 
 
+# Upper limits where a runaway value costs hours, not a clear error (a typo'd extra digit).
+MAX_RESOLUTION = 4096   # the paper renders 768; 4096^2 is ~3 min per Cycles bundle on a GPU
+MAX_SAMPLES = 65536
+MAX_STEPS = 10_000_000
+MAX_CFG = 50.0
+
+
 class CyclesParams(_Section):
-    samples: int = Field(64, ge=1)
+    samples: int = Field(64, ge=1, le=MAX_SAMPLES)
     adaptive_threshold: float = Field(0.02, ge=0.0, description="Cycles noise threshold; 0 turns adaptive sampling off")
     adaptive_min_samples: int = Field(16, ge=0)
     max_bounces: int = Field(4, ge=0)
@@ -154,7 +171,7 @@ class CyclesParams(_Section):
 
 
 class RenderParams(_Section):
-    resolution: int = Field(128, ge=8)
+    resolution: int = Field(128, ge=8, le=MAX_RESOLUTION)
     scenes: SplitCounts = SplitCounts(train=8, val=1, test=3)
     views_per_scene: int = Field(4, ge=1)
     lights_per_view: int = Field(3, ge=1)
@@ -163,8 +180,8 @@ class RenderParams(_Section):
     hdri: HdriParams = HdriParams()
     scene: SceneParams = SceneParams()
     lambertian_ball: bool = Field(True, description="also write the pure-diffuse ball (free: same render)")
-    ball_resolution: int = Field(32, ge=16, description="the light ball's own size; it is a smooth probe (16x32 env map)")
-    ball_samples: int = Field(32, ge=1, description="Cycles samples for the ball (adaptive threshold as the scene)")
+    ball_resolution: int = Field(32, ge=16, le=MAX_RESOLUTION, description="the light ball's own size; it is a smooth probe (16x32 env map)")
+    ball_samples: int = Field(32, ge=1, le=MAX_SAMPLES, description="Cycles samples for the ball (adaptive threshold as the scene)")
     ball_min_samples: int = Field(4, ge=0, description="adaptive sampling's minimum for the ball (0 = Cycles' automatic)")
     assets: tuple[str, ...] = Field((), description=".glb/.gltf/.obj/.blend files placed beside or instead of procedural shapes")
     assets_only: bool = Field(False, description="true: scenes hold only the listed assets, no procedural shapes")
@@ -264,9 +281,9 @@ class ScheduleParams(_Section):
 
 
 class TrainParams(_Section):
-    steps: int = Field(600, ge=1)
+    steps: int = Field(600, ge=1, le=MAX_STEPS)
     batch_size: int = Field(2, ge=1, description="samples per step; each carries every domain")
-    lr: float = Field(2e-4, gt=0)
+    lr: float = Field(2e-4, gt=0, le=1.0)
     weight_decay: float = Field(1e-2, ge=0)
     warmup_steps: int = Field(20, ge=0)
     lr_schedule: Literal["constant", "cosine"] = Field("constant", description="after warmup: constant, or a cosine decay to 0 at `steps`")
@@ -343,6 +360,10 @@ class RelightParams(ModelParams):
         "estimated", description="the input's own light for albedo_source effective: estimated = fitted to the input "
                                  "(pilight.physics.source_light; what a photo gets); rendered = the shards' ball of "
                                  "the input light")
+    specular_anchor: Literal["lookup", "ggx"] = Field(
+        "lookup", description="S_calc of physics_first: lookup = the gray ball minus its Lambertian twin read at the "
+                              "normal (knows no roughness); ggx = a microfacet highlight of the ball's dominant light "
+                              "with the conditioning roughness and Fresnel (pilight.physics.specular_model)")
     d_calc_condition: tuple[Literal["relit", "diffuse", "specular"], ...] = Field(
         (), description="branches that also get D_calc (Lambertian lookup of the target ball with the conditioning "
                         "normals) as a condition map; () = the paper")
@@ -372,15 +393,15 @@ class RelightParams(ModelParams):
 
 class SamplingParams(_Section):
     mode: Literal["ddim", "single_step"] = "ddim"
-    steps: int = Field(10, ge=1)
-    cfg_scale: float = Field(1.0, ge=0.0, description="the paper: 1.0 in stage 1, 1.5 in stage 2")
+    steps: int = Field(10, ge=1, le=10_000)
+    cfg_scale: float = Field(1.0, ge=0.0, le=MAX_CFG, description="the paper: 1.0 in stage 1, 1.5 in stage 2")
     timestep_spacing: Literal["leading", "trailing", "linspace"] = "trailing"
     ensemble: int = Field(1, ge=1)
     batch_size: int = Field(4, ge=1)
 
 
 class RelightInferParams(SamplingParams):
-    cfg_scale: float = Field(1.5, ge=0.0, description="the paper uses 1.5 in stage 2")
+    cfg_scale: float = Field(1.5, ge=0.0, le=MAX_CFG, description="the paper uses 1.5 in stage 2")
     split: Literal["val", "test"] = "test"
 
 
@@ -457,15 +478,42 @@ def _format(section: str, err: ValidationError) -> str:
     return "\n".join(lines)
 
 
-def load_section(name: str, path: str | Path = "params.yaml", cls: type[BaseModel] | None = None):
-    """Read one section of params.yaml and validate it; raise ParamsError naming key and value."""
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """SafeLoader that refuses a key given twice in one mapping (plain YAML keeps the last silently)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    "while constructing a mapping", node.start_mark,
+                    f"found duplicate key {key!r} (first on line {seen[key] + 1})", key_node.start_mark)
+            seen[key] = key_node.start_mark.line
+        return super().construct_mapping(node, deep=deep)
+
+
+def read_params(path: str | Path) -> dict:
+    """The whole params file: valid YAML, no duplicate keys, only known top-level sections."""
     path = Path(path)
     if not path.is_file():
         raise ParamsError(f"{path}: params file not found")
     try:
-        raw = yaml.safe_load(path.read_text()) or {}
+        raw = yaml.load(path.read_text(), Loader=_UniqueKeyLoader) or {}
     except yaml.YAMLError as exc:
         raise ParamsError(f"{path}: not valid YAML ({exc})") from exc
+    if not isinstance(raw, dict):
+        raise ParamsError(f"{path}: want a mapping of sections, got {type(raw).__name__}")
+    unknown = [k for k in raw if k not in SECTIONS]
+    if unknown:
+        raise ParamsError(f"{path}: unknown top-level section(s) {unknown} (a typo?); known: {list(SECTIONS)}")
+    return raw
+
+
+def load_section(name: str, path: str | Path = "params.yaml", cls: type[BaseModel] | None = None):
+    """Read one section of params.yaml and validate it; raise ParamsError naming key and value."""
+    path = Path(path)
+    raw = read_params(path)
     if name not in raw:
         raise ParamsError(f"{path}: missing section '{name}'")
     model = cls or SECTIONS[name]

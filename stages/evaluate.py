@@ -73,16 +73,24 @@ def main(argv: list[str] | None = None) -> int:
     atomic.write_json(args.metrics, {"intrinsics": result, "relight": relight}, sort_keys=True)
     table = markdown_table(result, "test")
     atomic.write_text(args.reports / "intrinsics.md", table)
-    if grid is not None:
-        atomic.write_png(args.reports / "intrinsics_grid.png", grid)
+    _write_or_remove(args.reports / "intrinsics_grid.png", grid)
     print(table)
     if "skipped" not in relight:
         table = relight_table(relight, split)
         atomic.write_text(args.reports / "relight.md", table)
-        if relight_grid is not None:
-            atomic.write_png(args.reports / "relight_grid.png", relight_grid)
         print(table)
+    else:
+        (args.reports / "relight.md").unlink(missing_ok=True)
+    _write_or_remove(args.reports / "relight_grid.png", relight_grid)
     return 0
+
+
+def _write_or_remove(path: Path, image) -> None:
+    """A report whose input is absent this run is removed: last run's file must not pass for this one's."""
+    if image is None:
+        path.unlink(missing_ok=True)
+    else:
+        atomic.write_png(path, image)
 
 
 if __name__ == "__main__":

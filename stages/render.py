@@ -22,6 +22,9 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--params", default="params.yaml")
     ap.add_argument("--out", default="data/renders")
+    ap.add_argument("--log", type=Path, default=Path("logs/render.log"),
+                    help="where Blender's own output goes (appended; not a DVC output: it holds timings)")
+    ap.add_argument("--verbose", action="store_true", help="Blender's output on the terminal instead of --log")
     args = ap.parse_args(argv)
     try:
         base = load_section("base", args.params)
@@ -35,12 +38,13 @@ def main(argv: list[str] | None = None) -> int:
     from pilight.render.scene import RenderError
 
     try:
-        stats = render_dataset(render, base, Path(args.out))
+        stats = render_dataset(render, base, Path(args.out), blender_log=None if args.verbose else args.log)
     except (RenderError, ContractError) as exc:
         print(f"render: {exc}", file=sys.stderr)
         return 1
     print(f"render: {stats['bundles']} (view, light) bundles in {stats['seconds']:.1f} s "
-          f"({60 * stats['bundles'] / max(stats['seconds'], 1e-9):.1f} per minute) -> {args.out}")
+          f"({60 * stats['bundles'] / max(stats['seconds'], 1e-9):.1f} per minute) -> {args.out}"
+          + ("" if args.verbose else f" (Blender's log: {args.log})"))
     return 0
 
 

@@ -33,6 +33,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--metrics", type=Path, default=Path("metrics/render_trade.json"))
     ap.add_argument("--plots", type=Path, default=Path("plots"))
     ap.add_argument("--reports", type=Path, default=Path("reports"))
+    ap.add_argument("--log", type=Path, default=Path("logs/render_trade.log"), help="where Blender's own output goes")
+    ap.add_argument("--verbose", action="store_true", help="Blender's output on the terminal instead of --log")
     args = ap.parse_args(argv)
     try:
         base, p = load_section("base", args.params), load_section("render", args.params)
@@ -49,6 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     from pilight.data import schema
     from pilight.eval.metrics import psnr_from_mse
     from pilight.render import dataset, passes, scene
+    from pilight.render.blender_log import blender_output_to
     from pilight.render.scene import RenderError
     from pilight.render.spec import scene_spec
 
@@ -67,8 +70,9 @@ def main(argv: list[str] | None = None) -> int:
     points.append(("pipeline", p.cycles.samples, p.cycles.adaptive_threshold, base.seed + 1))
     rows = []
     specs = [s for s in (first_of("object"), first_of("room")) if s is not None]
-    with tempfile.TemporaryDirectory(prefix="render_trade_") as tmp, \
-            tqdm(total=len(specs) * (len(points) + 1), desc="render_trade", unit="render") as bar:
+    with blender_output_to(None if args.verbose else args.log) as terminal, \
+            tempfile.TemporaryDirectory(prefix="render_trade_") as tmp, \
+            tqdm(total=len(specs) * (len(points) + 1), desc="render_trade", unit="render", file=terminal) as bar:
         try:
             for spec in specs:
                 handles = scene.build(spec, p, dataset.bundled_hdri_dir())
@@ -95,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
                                  "adaptive_threshold": threshold, "seconds": sec, "psnr_vs_reference": psnr_from_mse(mse),
                                  "rmse": mse ** 0.5})
         except RenderError as exc:
-            print(f"render_trade: {exc}", file=sys.stderr)
+            print(f"render_trade: {exc}", file=terminal)
             return 1
     for d in (args.metrics.parent, args.plots, args.reports):
         d.mkdir(parents=True, exist_ok=True)

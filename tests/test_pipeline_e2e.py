@@ -4,63 +4,43 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 import yaml
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.micro_project import make_micro_project
+
 pytestmark = pytest.mark.slow
 
-MICRO = {
-    "resolution": 32, "ball_resolution": 32, "ball_samples": 8, "views_per_scene": 1, "lights_per_view": 2,
-    "scenes": {"train": 2, "val": 1, "test": 1}, "cycles": {"samples": 8, "adaptive_min_samples": 4},
-}
 
-
-MICRO_UNET = {"block_out_channels": [32, 32], "cross_attention_dim": 32}
-MICRO_TRAIN = {"steps": 3, "checkpoint_every": 2, "image_every": 2, "log_every": 1, "warmup_steps": 0}
-MICRO_TRADE = {"images": 2, "steps": [1, 2], "spacings": ["leading", "trailing"], "intrinsics_cfg": [1.0, 2.0],
-               "relight_cfg": [1.5], "ensemble": [1, 2], "render_spp": [2, 4], "render_reference_spp": 8}
-
-
-def _run(args, cwd, env):
+def _run(args, cwd, env, *, both: bool = False):
     r = subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, f"{args}\n{r.stdout}\n{r.stderr}"
-    return r.stdout
+    return r.stdout + r.stderr if both else r.stdout
+
+
+REPRO_OUTPUT: dict[str, str] = {}  # what the fixture's `dvc repro` printed (stdout + stderr)
 
 
 @pytest.fixture(scope="module")
 def project(tmp_path_factory):
     """A fresh git + DVC project holding this checkout's code and a micro params.yaml."""
     d = tmp_path_factory.mktemp("project")
-    for name in ("pilight", "stages"):
-        shutil.copytree(ROOT / name, d / name, ignore=shutil.ignore_patterns("__pycache__"))
-    for name in ("dvc.yaml", ".gitignore"):
-        shutil.copy(ROOT / name, d / name)
-    params = yaml.safe_load((ROOT / "params.yaml").read_text())
-    params["render"].update(MICRO)
-    for stage in ("intrinsics", "relight"):  # a tiny UNet and a few steps: plumbing, not accuracy
-        if stage in params:
-            params[stage]["unet"].update(MICRO_UNET)
-            params[stage]["train"].update(MICRO_TRAIN)
-    for stage in ("infer_intrinsics", "relight_infer"):
-        if stage in params:
-            params[stage]["steps"] = 2
-    params["evaluate"]["trade"].update(MICRO_TRADE)
-    params["evaluate"].update(grid_images=2, relight_lights=3)
-    (d / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    env = {**os.environ, "DVC_NO_ANALYTICS": "1", "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
-    _run(["git", "init", "-q"], d, env)
-    _run([sys.executable, "-m", "dvc", "init", "-q"], d, env)
-    # A user's project has commits (dvclive and `dvc exp` need a HEAD).
-    _run(["git", "add", "-A"], d, env)
-    _run(["git", "-c", "user.name=ci", "-c", "user.email=ci@localhost", "commit", "-qm", "micro profile"], d, env)
-    _run([sys.executable, "-m", "dvc", "repro"], d, env)
+    env = make_micro_project(d)
+    REPRO_OUTPUT["repro"] = _run([sys.executable, "-m", "dvc", "repro"], d, env, both=True)
     return d, env
+
+
+def test_blender_output_goes_to_the_log_not_the_terminal(project):
+    """Blender prints a 'Saved:' line per rendered file; the user sees progress bars and summaries."""
+    d, _ = project
+    out = REPRO_OUTPUT["repro"]
+    assert "Saved:" not in out
+    assert "render: " in out and "logs/render.log" in out
+    assert "Saved:" in (d / "logs" / "render.log").read_text()
+    assert "Saved:" in (d / "logs" / "render_trade.log").read_text()
 
 
 def _dvc(project, *args):

@@ -21,6 +21,7 @@ import torch
 from torchmetrics.functional.image import structural_similarity_index_measure
 
 from pilight.data.predictions import read_predictions
+from pilight.data.schema import DataError
 from pilight.data.shards import intrinsics_dataset, make_loader
 from pilight.eval.metrics import angular_errors, masked_mae, masked_psnr, normal_metrics
 
@@ -66,6 +67,7 @@ def _collect(shard_dir: Path, split: str, preds: dict) -> dict[str, torch.Tensor
     keys = ("image", "albedo", "normal", "roughness", "metallic", "mask")
     gt = {k: [] for k in keys}
     pr = {k: [] for k in ("albedo", "normal", "roughness", "metallic")}
+    lacking: dict[str, list[str]] = {k: [] for k in pr}
     for b in make_loader(intrinsics_dataset(shard_dir, split, shuffle=False), 8):
         for i, key in enumerate(b["key"]):
             for k in keys:
@@ -73,6 +75,16 @@ def _collect(shard_dir: Path, split: str, preds: dict) -> dict[str, torch.Tensor
             for d in pr:
                 if d in preds.get(key, {}):
                     pr[d].append(torch.from_numpy(preds[key][d]).permute(2, 0, 1))
+                else:
+                    lacking[d].append(key)
+    # A domain predicted for some images but not all is damage, not a subset (infer_intrinsics.domains):
+    # scoring it on what is there, or not at all, would pass with a metric missing.
+    for d, keys_without in lacking.items():
+        if pr[d] and keys_without:
+            raise DataError(f"{split} image(s) {keys_without[:3]} have no predicted {d} while {len(pr[d])} others "
+                            "do; rerun infer_intrinsics")
+    if not any(pr.values()):
+        raise DataError(f"no stage-1 predictions for the {split} split; rerun infer_intrinsics")
     out = {f"gt_{k}": torch.stack(v) for k, v in gt.items()}
     out.update({f"pred_{k}": torch.stack(v) for k, v in pr.items() if len(v) == len(gt["image"])})
     return out

@@ -9,7 +9,11 @@ so the identity holds to float precision, and each of D and S is predicted as a 
 alone says under the target light b (pilight.physics.calculated):
 
     D_pred = (D_calc_b + eps_b) exp(GAIN * g_D) - eps_b        D_calc_b = lookup(unfold(ball_b), N) (1 - m)
-    S_pred = (S_calc_b + eps_b) exp(GAIN * g_S) - eps_b        S_calc_b = F(m, A) lookup(ball_b - lambertian_b, N)
+    S_pred = (S_calc_b + eps_b) exp(GAIN * g_S) - eps_b        S_calc_b: `relight.specular_anchor`
+
+S_calc_b is ``lookup``: F(m, A) lookup(ball_b - lambertian_b, N), the gray ball's own highlight (a
+0.5-rough dielectric's) read at the normal; or ``ggx``: the microfacet highlight of ball_b's dominant
+light with the conditioning roughness R and F0 = lerp(0.04, A, m) (pilight.physics.specular_model).
 
 g_D and g_S are the diffuse and specular branches' outputs (zero = pure physics); eps_b = EPS_LEVEL *
 level(ball_b) keeps the log finite where physics says 0 and scales with the light, so the whole form
@@ -57,6 +61,7 @@ from pilight.diffusion.codec import cell_smooth
 from pilight.physics.calculated import diffuse_calculated, specular_calculated
 from pilight.physics.envmap import BALL_ALBEDO, ball_normals
 from pilight.physics.source_light import estimate_source_balls
+from pilight.physics.specular_model import specular_from_ball
 
 EPS_LEVEL = 0.05  # eps_b / level(ball_b): 5% of the light's mean shading
 GAIN = 2.0        # g = log ratio / GAIN, so |g| stays near the range of the other targets
@@ -82,23 +87,31 @@ class Anchors:
     level: torch.Tensor    # level(ball_b), (B, 1, 1, 1)
 
 
-def _specular(ball, lambertian, normal, mask, albedo, metallic):
-    """S_calc, or 0 when the light has no Lambertian twin (an analytic ball is Lambertian already)."""
+def _specular(ball, lambertian, intr, mask, kind: str):
+    """S_calc of one light. lookup: (gray - Lambertian ball) read at the normal, 0 when the light has no
+    Lambertian twin (an analytic or SH-fitted ball is Lambertian already); ggx: the microfacet highlight
+    of the ball's dominant light (its Lambertian twin, or the ball itself when it has none)."""
+    n, m, a_c = intr["normal"].float(), intr["metallic"].float(), intr["albedo"].float()
+    if kind == "ggx":
+        lamb = ball if lambertian is None else lambertian
+        return specular_from_ball(lamb, n, intr["roughness"], a_c, m) * mask.float()
+    if kind != "lookup":
+        raise ValueError(f"specular anchor must be 'lookup' or 'ggx', got {kind!r}")
     if lambertian is None:
-        return torch.zeros_like(normal, dtype=torch.float32)
-    return specular_calculated(ball, lambertian, normal, mask, albedo, metallic)
+        return torch.zeros_like(n)
+    return specular_calculated(ball, lambertian, n, mask, a_c, m)
 
 
 def anchors(image_a: torch.Tensor, intr: dict[str, torch.Tensor], mask: torch.Tensor, ball_b: torch.Tensor,
             lambertian_b: torch.Tensor | None, *, albedo_source: str = "effective",
             ball_a: torch.Tensor | None = None, lambertian_a: torch.Tensor | None = None,
-            smooth_cell: int = 1) -> Anchors:
+            smooth_cell: int = 1, specular: str = "lookup") -> Anchors:
     """The physics anchors of the target light b and the albedo A_x (module docstring)."""
     n, m, a_c = intr["normal"].float(), intr["metallic"].float(), intr["albedo"].float()
     level = light_level(ball_b)
     sm = lambda x: cell_smooth(x, smooth_cell)
     d_b = sm(diffuse_calculated(ball_b, n, mask, m))
-    s_b = sm(_specular(ball_b, lambertian_b, n, mask, a_c, m))
+    s_b = sm(_specular(ball_b, lambertian_b, intr, mask, specular))
     if albedo_source == "conditioning":
         a_x = a_c
     elif albedo_source == "effective":
@@ -109,7 +122,7 @@ def anchors(image_a: torch.Tensor, intr: dict[str, torch.Tensor], mask: torch.Te
             ball_a, found, lambertian_a = ball_a.to(image_a.device), found.to(image_a.device), None
         eps_a = EPS_LEVEL * light_level(ball_a)
         d_a = sm(diffuse_calculated(ball_a, n, mask, m))
-        s_a = sm(_specular(ball_a, lambertian_a, n, mask, a_c, m))
+        s_a = sm(_specular(ball_a, lambertian_a, intr, mask, specular))
         a_x = ((image_a.float() - s_a).clamp_min(0) + eps_a * a_c) / (d_a + eps_a)
         # off the mask, and for an image whose light could not be estimated, the conditioning albedo
         a_x = torch.where((mask > 0.5) & found[:, None, None, None], a_x, a_c)

@@ -3,12 +3,17 @@
 Per view, the first light's render also carries the view maps (AOVs + normal pass); later
 lights render only what they need (beauty + diffuse passes). All main-scene renders of a view
 run back to back, then all ball renders, so Cycles' persistent data is reused within each.
-A view is complete when its `.done` marker exists; a rerun skips complete views and redoes
-the rest, so an interrupted render ends with the same files as an uninterrupted one.
+A view is complete when its `.done` marker holds the view's stamp: a hash of everything its files
+are made from (the scene spec, the view index, the render params but the scene counts, Blender's
+version). A rerun skips complete views and redoes the rest from an empty folder, so an interrupted
+render ends with the same files as an uninterrupted one, and a rerun with other params never keeps
+a view made with the old ones. Scene folders the params no longer ask for are removed. That is what
+lets `dvc repro` resume a killed render: the stage's output is `persist: true` (dvc.yaml).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import shutil
 import tempfile
@@ -25,6 +30,7 @@ from pilight.data.exr import read_render_passes, write_exr
 from pilight.params import BaseParams, RenderParams
 from pilight.render import passes as P
 from pilight.render import scene as S
+from pilight.render.blender_log import blender_output_to
 from pilight.render.spec import SPLITS, scene_spec
 
 
@@ -68,10 +74,38 @@ def _render(scene, tmp_dir: Path) -> dict[str, np.ndarray]:
     return passes
 
 
+def view_stamp(spec: dict, view: int, p: RenderParams) -> str:
+    """sha256 of what one view's files are made from (module docstring); the `.done` marker's content."""
+    made_from = {"spec": spec, "view": view, "render": p.model_dump(mode="json", exclude={"scenes"}),
+                 "blender": bpy.app.version_string}
+    return hashlib.sha256(json.dumps(made_from, sort_keys=True).encode()).hexdigest()
+
+
+def view_is_complete(root: Path, spec: dict, view: int, p: RenderParams) -> bool:
+    done = layout.view_dir(root, spec["id"], view) / layout.DONE_MARKER
+    return done.is_file() and done.read_text() == view_stamp(spec, view, p)
+
+
+def remove_unasked(root: Path, specs: list[dict]) -> None:
+    """Scene folders, and views within them, that the current params do not ask for (fewer scenes or
+    views than the last run): a folder the params would not make must not reach the shards."""
+    asked = {s["id"]: len(s["views"]) for s in specs}
+    for d in sorted(root.iterdir()):
+        if not d.is_dir() or d.name.startswith("."):
+            continue
+        if d.name not in asked:
+            shutil.rmtree(d)
+            continue
+        for v in sorted(d.iterdir()):
+            if v.is_dir() and v.name.startswith("v") and v.name[1:].isdigit() and int(v.name[1:]) >= asked[d.name]:
+                shutil.rmtree(v)
+
+
 def render_view(handles: dict, spec: dict, view: int, root: Path, tmp_dir: Path, *, lambertian: bool,
-                verify: bool = False, on_bundle=None) -> dict:
-    """Render every light of one view; return the raw passes when `verify` (for tests)."""
+                verify: bool = False, on_bundle=None, stamp: str = "") -> dict:
+    """Render every light of one view into an emptied view folder; return the raw passes when `verify`."""
     scene, ball_scene = handles["scene"], handles["ball_scene"]
+    shutil.rmtree(layout.view_dir(root, spec["id"], view), ignore_errors=True)  # nothing of an older view survives
     S.set_view(handles, spec["views"][view])
     rot = np.array(S.camera_rotation(handles))
     sid, raw = spec["id"], {}
@@ -102,7 +136,7 @@ def render_view(handles: dict, spec: dict, view: int, root: Path, tmp_dir: Path,
             write_exr(layout.map_path(root, sid, view, name, li), arr, half=True)
         tiles = [lit[li]["image"], maps["albedo"], lit[li]["diffuse"], lit[li]["specular"], balls["ball"]]
         write_preview(layout.light_dir(root, sid, view, li) / "preview.png", tiles)
-    (layout.view_dir(root, sid, view) / layout.DONE_MARKER).write_text("")
+    (layout.view_dir(root, sid, view) / layout.DONE_MARKER).write_text(stamp)
     return raw
 
 
@@ -124,25 +158,36 @@ def all_specs(p: RenderParams, base: BaseParams) -> list[dict]:
     return [scene_spec(p, base.seed, split, i) for split in SPLITS for i in range(counts[split])]
 
 
-def render_dataset(p: RenderParams, base: BaseParams, root: Path, *, progress: bool = True) -> dict:
-    """Render all scenes into `root`; returns timing figures."""
+def render_dataset(p: RenderParams, base: BaseParams, root: Path, *, progress: bool = True,
+                   blender_log: Path | None = None) -> dict:
+    """Render all scenes into `root`; returns timing figures. Blender's own lines go to `blender_log`
+    (appended; None = the terminal), the progress bar stays on the terminal."""
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
+    with blender_output_to(blender_log) as terminal:
+        return _render_all(p, base, root, progress=progress, terminal=terminal)
+
+
+def _render_all(p: RenderParams, base: BaseParams, root: Path, *, progress: bool, terminal) -> dict:
     hdri_dir = Path(p.hdri.dir) if p.hdri.dir else bundled_hdri_dir()
     specs = all_specs(p, base)
     total = sum(len(v) for s in specs for v in s["lights"])
-    bar = tqdm(total=total, desc="render (view, light) bundles", unit="bundle", disable=not progress)
+    bar = tqdm(total=total, desc="render (view, light) bundles", unit="bundle", disable=not progress,
+               file=terminal)
     manifest, t0 = [], time.perf_counter()
+    (root / "manifest.json").unlink(missing_ok=True)  # written last: its presence means the folder is complete
+    remove_unasked(root, specs)
     tmp_dir = Path(tempfile.mkdtemp(prefix=".render_tmp_", dir=root))
     try:
         for spec in specs:
             sid = spec["id"]
-            pending = [v for v in range(len(spec["views"])) if not (layout.view_dir(root, sid, v) / layout.DONE_MARKER).is_file()]
+            pending = [v for v in range(len(spec["views"])) if not view_is_complete(root, spec, v, p)]
             if pending or not (root / sid / "scene.json").is_file():
                 handles = S.build(spec, p, hdri_dir)
                 for v in range(len(spec["views"])):
                     if v in pending:
-                        render_view(handles, spec, v, root, tmp_dir, lambertian=p.lambertian_ball, on_bundle=bar.update)
+                        render_view(handles, spec, v, root, tmp_dir, lambertian=p.lambertian_ball, on_bundle=bar.update,
+                                    stamp=view_stamp(spec, v, p))
                     else:
                         bar.update(len(spec["lights"][v]))
                 write_json(root / sid / "scene.json", scene_sidecar(spec, handles, p))

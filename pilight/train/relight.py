@@ -94,6 +94,7 @@ class RelightTask:
                 "relit_resolution": self.p.relit_resolution, "physics_first": self.physics_first,
                 "albedo_source": self.p.albedo_source if self.physics_first else None,
                 "source_light": self.p.source_light if self.physics_first else None,
+                "specular_anchor": self.p.specular_anchor if self.physics_first else None,
                 "physics_space": self.physics_space,
                 "branches": list(self.branches), "conditions": self.p.conditions,
                 "condition_maps": {b: list(m) for b, m in self.layout.items()},
@@ -176,7 +177,7 @@ class RelightTask:
         anc = pf.anchors(image_a, intr, mask, ball_b, batch["ball_lambertian_b"].to(dev) if "ball_lambertian_b" in batch
                          else None, albedo_source=self.p.albedo_source,
                          ball_a=opt("ball_a"), lambertian_a=opt("ball_lambertian_a"),
-                         smooth_cell=self._cell)
+                         smooth_cell=self._cell, specular=self.p.specular_anchor)
         return physics_first_images(image_a, intr, ball_b, mask, anc), anc
 
     def _physics_first_targets(self, batch: dict, anc: pf.Anchors, y_a: torch.Tensor, dev) -> torch.Tensor:

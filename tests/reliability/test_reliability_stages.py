@@ -80,3 +80,45 @@ def test_truncated_model_fails_inference_with_a_message(setup, tmp_path, capsys)
     err = capsys.readouterr().err
     assert rc == 1 and f"{tmp_path / 'model' / 'model.safetensors'}: unreadable safetensors file" in err, err
     assert not (tmp_path / "pred").exists()
+
+
+def _infer_test_split(setup, tmp_path):
+    shards, _ = setup
+    params = params_file(tmp_path, {"intrinsics": TINY, "infer_intrinsics": {"steps": 1, "splits": ["test"]}})
+    assert _main("train_intrinsics")(_train_args(tmp_path, shards, params)) == 0
+    assert _main("infer_intrinsics")(["--params", str(params), "--shards", str(shards), "--model", str(tmp_path / "model"),
+                                      "--out", str(tmp_path / "pred"), "--metrics", str(tmp_path / "m.json")]) == 0
+    return shards, params
+
+
+def _evaluate(tmp_path, shards, params):
+    return _main("evaluate")(["--params", str(params), "--shards", str(shards), "--pred", str(tmp_path / "pred"),
+                              "--relit", str(tmp_path / "no_relit"), "--metrics", str(tmp_path / "eval.json"),
+                              "--reports", str(tmp_path / "reports")])
+
+
+def test_evaluate_fails_on_a_missing_prediction_and_removes_stale_reports(setup, tmp_path, capsys, monkeypatch):
+    """One test image without its predicted albedo: exit 1 naming it, not 'n/a' with exit 0. A run
+    without relit pairs removes last run's relight report and grid instead of leaving them."""
+    import pilight.eval.intrinsics as ev
+
+    shards, params = _infer_test_split(setup, tmp_path)
+    reports = tmp_path / "reports"
+    reports.mkdir()
+    for stale in ("relight.md", "relight_grid.png"):
+        (reports / stale).write_text("last run's")
+    assert _evaluate(tmp_path, shards, params) == 0
+    assert not (reports / "relight.md").exists() and not (reports / "relight_grid.png").exists()
+    assert (reports / "intrinsics_grid.png").is_file()
+    read = ev.read_predictions
+
+    def one_albedo_short(pred_dir, split):  # the prediction tars are checksummed; drop it after reading
+        preds = read(pred_dir, split)
+        del preds[sorted(preds)[0]]["albedo"]
+        return preds
+
+    monkeypatch.setattr(ev, "read_predictions", one_albedo_short)
+    capsys.readouterr()
+    assert _evaluate(tmp_path, shards, params) == 1
+    err = capsys.readouterr().err
+    assert "no predicted albedo" in err and "rerun infer_intrinsics" in err, err

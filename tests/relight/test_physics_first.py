@@ -163,3 +163,22 @@ def test_an_image_whose_light_cannot_be_estimated_keeps_the_conditioning_albedo(
 def test_physics_first_refuses_layouts_it_cannot_form(bad):
     with pytest.raises(ValueError, match="physics_first"):
         RelightParams.model_validate({**TINY, **bad})
+
+
+def test_ggx_specular_anchor_adds_the_microfacet_highlight_of_the_target_light():
+    """specular 'ggx': S_calc_b is the microfacet highlight of the target ball's light (an analytic ball
+    is its own Lambertian twin), where the lookup says 0; an unknown kind is refused by name."""
+    from pilight.physics.specular_model import specular_from_ball
+
+    b = _pair()
+    intr = {k: b[k] for k in ("albedo", "normal", "metallic", "roughness")}
+    lookup = pf.anchors(b["image_a"], intr, b["mask"], b["ball_b"], None)
+    ggx = pf.anchors(b["image_a"], intr, b["mask"], b["ball_b"], None, specular="ggx")
+    assert float(lookup.s_calc.abs().sum()) == 0.0
+    want = specular_from_ball(b["ball_b"], b["normal"], b["roughness"], b["albedo"], b["metallic"]) * b["mask"]
+    torch.testing.assert_close(ggx.s_calc, want)
+    assert float(want.sum()) > 0
+    relit = pf.compose_relit(ggx, torch.zeros_like(b["image_a"]), torch.zeros_like(b["image_a"]))
+    torch.testing.assert_close(relit["relit"], relit["albedo"] * relit["diffuse"] + relit["specular"])
+    with pytest.raises(ValueError, match="specular anchor"):
+        pf.anchors(b["image_a"], intr, b["mask"], b["ball_b"], None, specular="phong")
