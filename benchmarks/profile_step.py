@@ -62,7 +62,7 @@ def time_steps(task, p, batches: list, *, seed: int, profile: bool = False):
     module.train()
 
     def step(batch):
-        loss, _ = task.loss(batch, gen)
+        loss, _ = task.loss(batch, gen, module)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, 1.0)
         opt.step()

@@ -14,6 +14,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .attention import CrossBatchAttnProcessor, set_cross_batch_attention
+from .conditioning import null_like
 
 
 class DomainDiffusion(nn.Module):
@@ -87,8 +88,23 @@ class DomainDiffusion(nn.Module):
         return self.conditioning(images)
 
     def forward(self, noisy_latents: torch.Tensor, cond_latents: torch.Tensor, timesteps: torch.Tensor,
-                domain_ids: torch.Tensor, encoder_hidden_states: torch.Tensor) -> torch.Tensor:
+                domain_ids: torch.Tensor, encoder_hidden_states: torch.Tensor | None = None, *,
+                condition_images: torch.Tensor | None = None, drop: torch.Tensor | None = None) -> torch.Tensor:
+        """v for every item. The cross-attention states are either given (``encoder_hidden_states``,
+        one per item: the sampler's path) or embedded here from ``condition_images`` (one per sample,
+        [-1, 1]), with the samples flagged in ``drop`` given the null state (classifier-free guidance
+        dropout). Training takes the second path so that every trainable parameter, the conditioning's
+        included, is used inside this forward: a DDP wrapper (accelerate.prepare) only sees that."""
         n = noisy_latents.shape[0]
+        if (encoder_hidden_states is None) == (condition_images is None):
+            raise ValueError("give exactly one of encoder_hidden_states and condition_images")
+        if encoder_hidden_states is None:
+            ehs = self.conditioning(condition_images)
+            if drop is not None:
+                ehs = torch.where(drop[:, None, None], null_like(ehs), ehs)
+            if n % ehs.shape[0]:
+                raise ValueError(f"{ehs.shape[0]} condition images for a batch of {n} items")
+            encoder_hidden_states = ehs.repeat_interleave(n // ehs.shape[0], 0)
         if noisy_latents.shape[1] != self.latent_channels:
             raise ValueError(f"noisy latents have {noisy_latents.shape[1]} channels, the UNet predicts "
                              f"{self.latent_channels} (codec/UNet channel mismatch)")

@@ -88,8 +88,11 @@ class IntrinsicsTask:
         ds.set_epoch(epoch)
         return make_loader(ds, self.p.train.batch_size, num_workers=self.p.train.num_workers, drop_last=True)
 
-    def loss(self, batch: dict, generator: torch.Generator) -> tuple[torch.Tensor, dict[str, float]]:
+    def loss(self, batch: dict, generator: torch.Generator,
+             model: torch.nn.Module | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+        """``model``: what the loop prepared (a DDP wrapper under several processes); default the stack's."""
         s, V = self.stack, len(DOMAINS)
+        model = s.model if model is None else model
         dev = next(s.model.parameters()).device
         image = schema.to_model("image", batch["image"]).to(dev)
         B = image.shape[0]
@@ -104,10 +107,9 @@ class IntrinsicsTask:
         drop = (torch.rand(B, generator=generator) < self.p.train.cond_dropout).to(dev)  # CFG needs an unconditional model
         t = t.to(dev)
         x_t = s.scheduler.add_noise(z0, noise, t)
-        ehs = s.encode_condition(image, drop)
         z_cond = z_cond * (~drop).repeat_interleave(V).to(z_cond.dtype)[:, None, None, None]
         domain_ids = torch.arange(V, device=dev).repeat(B)
-        v = s.model(x_t, z_cond, t, domain_ids, ehs.repeat_interleave(V, 0))
+        v = model(x_t, z_cond, t, domain_ids, condition_images=image, drop=drop)
         loss = masked_latent_mse(v.float(), v_target(z0, noise, s.alphas_cumprod(dev), t).float(), m)
         return loss, {"mask_fraction": float(m.mean())}
 

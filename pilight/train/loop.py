@@ -4,18 +4,20 @@ A stage script builds a :class:`Task` and calls :func:`train`.  The same script 
 
 * on one process (CPU, or one GPU):   ``python stages/train_intrinsics.py``
 * data-parallel on 8 GPUs:            ``accelerate launch --multi_gpu --num_processes 8 stages/train_intrinsics.py``
-* DeepSpeed ZeRO-2 (untested here):
+* DeepSpeed ZeRO-2:
   ``accelerate launch --use_deepspeed --zero_stage 2 --num_processes 8 stages/train_intrinsics.py``
 
 ``accelerate`` handles device placement, autocast (``mixed_precision``), gradient accumulation,
-fp16 loss scaling and the process group.  The trainable module is NOT wrapped in DDP: a Task calls
-its own module, which would bypass a DDP wrapper's forward and silently skip gradient sync, so the
-loop broadcasts rank 0's weights once and averages gradients itself (one all-reduce per tensor at
-each optimizer step; no compute/communication overlap, BatchNorm-style buffers are not synced).
-Under DeepSpeed the engine reduces gradients (ZeRO hooks sit on the parameters); that path and
-resuming it are untested.  The loop never shards data: under several processes ``Task.batches``
-must return this process's shard (webdataset ``split_by_node``) and every process must yield the
-same number of batches per epoch, otherwise the collectives deadlock.
+fp16 loss scaling, the process group and the data-parallel wrapper: the trainable module goes
+through ``accelerator.prepare`` for every distributed type (plain on one process, DDP under
+several, the DeepSpeed engine under DeepSpeed), and the loop hands the prepared model to
+``task.loss``, which must call it (not its own module) for the forward pass with gradients. The
+model's forward embeds the condition itself, so every trainable parameter is used inside the
+wrapped forward and DDP averages every gradient.  DDP's constructor broadcasts rank 0's weights.
+Under several processes ``Task.batches`` returns this process's shard (webdataset
+``split_by_node``); the ranks agree before every micro-batch that each of them has one, so an
+epoch ends for all of them at the shortest rank's last batch and the collectives never hang, even
+when the shards do not divide evenly.
 
 Resume is automatic: if ``checkpoint_dir`` holds a complete checkpoint, :func:`train` restores
 model, AdamW, LR scheduler, RNG states (one generator per process), step and epoch, rebuilds
@@ -41,7 +43,7 @@ from typing import Any, Iterable, Protocol
 import numpy
 import torch
 from accelerate import Accelerator
-from accelerate.utils import DistributedType, send_to_device
+from accelerate.utils import send_to_device
 from tqdm.auto import tqdm
 
 from pilight.train import checkpoint as ckpt
@@ -93,7 +95,8 @@ class Task(Protocol):
 
     def trainable(self) -> torch.nn.Module: ...
     def batches(self, epoch: int) -> Iterable[Any]: ...  # deterministic, this process's shard
-    def loss(self, batch: Any, generator: torch.Generator) -> tuple[torch.Tensor, dict[str, float]]: ...
+    # model: the prepared module (a DDP wrapper under several processes); the forward with gradients calls it
+    def loss(self, batch: Any, generator: torch.Generator, model: torch.nn.Module) -> tuple[torch.Tensor, dict[str, float]]: ...
     def images(self, batch: Any) -> dict[str, numpy.ndarray]: ...  # must not draw from the global RNG it relies on
 
 
@@ -133,15 +136,12 @@ def _restore_rng(acc: Accelerator, generator: torch.Generator, rng: dict[str, to
         torch.cuda.set_rng_state(rng[f"rank{r}.cuda"], acc.device)
 
 
-def _average_gradients(params: list[torch.nn.Parameter], world: int) -> None:
-    # A missing grad counts as zero so every process issues the same collectives (no deadlock).
-    for p in params:
-        if p.grad is None:
-            p.grad = torch.zeros_like(p)
-    for h in [torch.distributed.all_reduce(p.grad, async_op=True) for p in params]:
-        h.wait()
-    for p in params:
-        p.grad.div_(world)
+def _all_have_batch(acc: Accelerator, have: bool) -> bool:
+    """True when every process has a micro-batch (one tiny all-reduce); single process: ``have``."""
+    if acc.num_processes == 1:
+        return have
+    flag = torch.tensor([1.0 if have else 0.0], device=acc.device)
+    return bool(acc.reduce(flag, "sum").item() == acc.num_processes)
 
 
 def _check_finite_before_saving(acc: Accelerator, win_loss: torch.Tensor, win_n: int,
@@ -205,16 +205,9 @@ def train(task: Task, cfg: LoopConfig, checkpoint_dir: Path, live_dir: Path | No
     # accelerate steps a prepared scheduler num_processes times per optimizer step, hence the factor.
     scheduler = _lr_schedule(optimizer, cfg.lr_schedule, cfg.warmup_steps * acc.num_processes,
                              cfg.steps * acc.num_processes)
-    deepspeed = acc.distributed_type == DistributedType.DEEPSPEED
-    manual_sync = acc.num_processes > 1 and not deepspeed  # see module docstring: no DDP wrapper
-    if deepspeed:
-        model, optimizer, scheduler = acc.prepare(module, optimizer, scheduler)
-    else:
-        model = module
-        optimizer, scheduler = acc.prepare(optimizer, scheduler)
-    if manual_sync:  # what DDP's constructor would do: every process starts from rank 0's weights
-        for t in [*module.parameters(), *module.buffers()]:
-            torch.distributed.broadcast(t.data, src=0)
+    # One process: the module itself. Several: DDP (its constructor broadcasts rank 0's weights), or
+    # the DeepSpeed engine. task.loss calls this prepared model, so the wrapper's hooks see the forward.
+    model, optimizer, scheduler = acc.prepare(module, optimizer, scheduler)
     ema = None
     if cfg.ema_decay > 0:
         from diffusers.training_utils import EMAModel
@@ -250,16 +243,18 @@ def train(task: Task, cfg: LoopConfig, checkpoint_dir: Path, live_dir: Path | No
     model.train()
     while step < cfg.steps:
         seen = 0
-        for batch in task.batches(epoch):
+        batches = iter(task.batches(epoch))
+        while True:
+            batch = next(batches, None)
+            if not _all_have_batch(acc, batch is not None):  # every rank ends the epoch at the same batch
+                break
             seen += 1
             if seen <= consumed:  # fast-forward over batches a previous run already trained on
                 continue
             with acc.accumulate(model):
                 with acc.autocast():
-                    loss, scalars = task.loss(send_to_device(batch, acc.device), generator)
-                acc.backward(loss)  # divides by grad_accum
-                if acc.sync_gradients and manual_sync:
-                    _average_gradients(params, acc.num_processes)
+                    loss, scalars = task.loss(send_to_device(batch, acc.device), generator, model)
+                acc.backward(loss)  # divides by grad_accum; DDP averages the gradients over processes here
                 if acc.sync_gradients and cfg.max_grad_norm is not None:
                     acc.clip_grad_norm_(params, cfg.max_grad_norm)
                 optimizer.step()  # these three are no-ops until the last micro-batch of an accumulation

@@ -199,8 +199,11 @@ class RelightTask:
         out["relit"] = torch.where(mask > 0.5, out["relit"], off)
         return out
 
-    def loss(self, batch: dict, generator: torch.Generator) -> tuple[torch.Tensor, dict[str, float]]:
+    def loss(self, batch: dict, generator: torch.Generator,
+             model: torch.nn.Module | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+        """``model``: what the loop prepared (a DDP wrapper under several processes); default the stack's."""
         s, V, p = self.stack, self.V, self.p
+        model = s.model if model is None else model
         dev = next(s.model.parameters()).device
         B = batch["image_a"].shape[0]
         # Draw order (fixed, for exact resume): t, conditions source, CFG drop, noise.
@@ -225,10 +228,9 @@ class RelightTask:
         noise = torch.randn(z0.shape, generator=generator).to(dev)
         drop, tv = drop.to(dev), t.repeat_interleave(V).to(dev)  # one timestep per sample, shared by its branches
         x_t = s.scheduler.add_noise(z0, noise, tv)
-        ehs = s.encode_condition(maps["image"], drop)
         z_cond = z_cond * (~drop).repeat_interleave(V).to(z_cond.dtype)[:, None, None, None]
         ids = torch.arange(V, device=dev).repeat(B)
-        v = s.model(x_t, z_cond, tv, ids, ehs.repeat_interleave(V, 0)).float()
+        v = model(x_t, z_cond, tv, ids, condition_images=maps["image"], drop=drop).float()
         alphas = s.alphas_cumprod(dev)
         l_v = F.mse_loss(v, v_target(z0, noise, alphas, tv).float())
         lambdas = (p.lambda_ds, p.lambda_ps, p.lambda_rec)

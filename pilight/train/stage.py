@@ -42,6 +42,10 @@ def run_training_stage(name: str, section: str, base: Any, p: Any, make_task: Ca
         print(f"{name}: {described}")
     identity = run_identity(base.seed, section, p.model_dump(mode="json"), data)
     stats = train(task, loop_config(p.train, base.seed), checkpoints, live, identity=identity)
+    from accelerate import PartialState
+
+    if not PartialState().is_main_process:  # every rank ends with the same weights; one writes them
+        return 0
     save_model(task.stack, out, p.model_dump(mode="json"))
     if described is not None:
         atomic.write_json(out / "task.json", described, sort_keys=True)

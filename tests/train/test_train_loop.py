@@ -43,14 +43,14 @@ class ToyTask:
             x = torch.randn(self.samples_per_batch, 8, generator=g)
             yield {"x": x, "y": x.flip(-1) * 0.5}
 
-    def loss(self, batch, generator):
+    def loss(self, batch, generator, model=None):
         self.calls += 1
         if self.crash_after is not None and self.calls > self.crash_after:
             raise KeyboardInterrupt("simulated kill")
         t = torch.rand(batch["x"].shape[0], 1, generator=generator)
         noise = torch.randn(batch["x"].shape, generator=generator)
         keep = (torch.rand(batch["x"].shape, generator=generator) > 0.1).float()
-        pred = self.net((batch["x"] + t * noise) * keep)
+        pred = (model or self.net)((batch["x"] + t * noise) * keep)
         loss = torch.nn.functional.mse_loss(pred.float(), batch["y"])
         return loss, {"t_mean": float(t.mean())}
 
@@ -125,9 +125,9 @@ def test_ema_run_resumes_bit_exact_and_ends_holding_the_ema(tmp_path: Path):
     raw = [[p.detach().clone() for p in ref.net.parameters()]]
     real_loss = ref.loss
 
-    def recording_loss(batch, generator):  # the weights before each step's forward = after the previous step
+    def recording_loss(batch, generator, model):  # the weights before each step's forward = after the previous step
         raw.append([p.detach().clone() for p in ref.net.parameters()])
-        return real_loss(batch, generator)
+        return real_loss(batch, generator, model)
 
     ref.loss = recording_loss
     train(ref, cfg(ema_decay=decay), tmp_path / "ref", None, progress=False)
@@ -268,46 +268,94 @@ def test_invalid_config():
         LoopConfig(steps=10, ema_decay=1.0)
 
 
+class ShardedToyTask:
+    """A deterministic regression whose global batch k is split across ranks: rank r of `world` gets
+    rows [r b, (r + 1) b) of it, and one process (world = 1) gets all of them, so a 2-process run and a
+    1-process run see the same data. Rank 0 holds one batch more per epoch than the others (shards
+    that do not divide evenly); every rank must stop at the common count.
+
+    The loss is scaled so that the gradients sit near AdamW's eps (1e-8). AdamW is otherwise blind to a
+    constant gradient scale, so summed instead of averaged gradients (2x) would train the same weights;
+    here they do not."""
+
+    SCALE = 1e-6
+
+    def __init__(self, rank: int = 0, world: int = 1, per_rank: int = 2, n_batches: int = 3, model_seed: int = 123):
+        torch.manual_seed(model_seed)
+        self.net = torch.nn.Sequential(torch.nn.Linear(8, 16), torch.nn.GELU(), torch.nn.Linear(16, 8))
+        self.rank, self.world, self.per_rank, self.n_batches = rank, world, per_rank, n_batches
+        self.samples_per_batch = per_rank * (2 if world == 1 else 1)
+
+    def trainable(self):
+        return self.net
+
+    def batches(self, epoch: int):
+        g = torch.Generator().manual_seed(1000 + epoch)
+        extra = 1 if self.world > 1 and self.rank == 0 else 0
+        for k in range(self.n_batches + extra):
+            x = torch.randn(2 * self.per_rank, 8, generator=g)  # the global batch of 2 ranks
+            if self.world > 1:
+                x = x[self.rank * self.per_rank:(self.rank + 1) * self.per_rank]
+            yield {"x": x, "y": x.flip(-1) * 0.5}
+
+    def loss(self, batch, generator, model):
+        return torch.nn.functional.mse_loss(model(batch["x"]), batch["y"]) * self.SCALE, {}
+
+    def images(self, batch):
+        return {}
+
+
+def ddp_cfg(steps: int) -> LoopConfig:
+    return LoopConfig(steps=steps, lr=1e-2, checkpoint_every=4, keep_checkpoints=2, log_every=2, image_every=100)
+
+
 _TWO_PROCESS_SCRIPT = """
 import os, sys, torch
 sys.path.insert(0, {here!r})
-from test_train_loop import ToyTask, cfg
+from test_train_loop import ShardedToyTask, ddp_cfg
 from pilight.train.loop import train
 from safetensors.torch import save_file
-out, rank = sys.argv[1], os.environ["RANK"]
-for name, steps in (("ref", 12), ("split", 7), ("split", 12)):
-    task = ToyTask(model_seed=int(rank))  # different init per rank: the loop must broadcast rank 0's
-    stats = train(task, cfg(steps=steps), f"{{out}}/{{name}}", None, progress=False)
+out, rank = sys.argv[1], int(os.environ["RANK"])
+for name, steps in (("ddp", 12), ("resumed", 7), ("resumed", 12)):
+    task = ShardedToyTask(rank=rank, world=2, model_seed=123 + rank)  # another init per rank: DDP broadcasts rank 0's
+    train(task, ddp_cfg(steps), f"{{out}}/{{name}}", None, progress=False)
     save_file({{k: v.contiguous() for k, v in task.net.state_dict().items()}}, f"{{out}}/{{name}}-{{rank}}.st")
 """
 
 
-def test_two_processes_sync_and_resume(tmp_path: Path):
-    """torchrun, 2 CPU processes (gloo): gradients are averaged, ranks agree, resume is bit-exact."""
+def test_two_processes_train_what_one_process_trains_on_their_batches(tmp_path: Path):
+    """torchrun, 2 CPU processes (gloo), through accelerate.prepare (DDP): the weights equal, to float
+    tolerance, one process trained on the two ranks' concatenated batches; the ranks agree bit for bit;
+    uneven batch counts do not hang; a resumed 2-process run is bit-exact."""
     import os
     import subprocess
     import sys
-
-    from safetensors.torch import load_file
 
     script = tmp_path / "two.py"
     script.write_text(_TWO_PROCESS_SCRIPT.format(here=str(Path(__file__).parent)))
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).parents[2])}
     proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-                           str(script), str(tmp_path)], env=env, capture_output=True, text=True, timeout=120)
+                           str(script), str(tmp_path)], env=env, capture_output=True, text=True, timeout=180)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    w = {(n, r): load_file(str(tmp_path / f"{n}-{r}.st")) for n in ("ref", "split") for r in (0, 1)}
-    assert_bit_equal(w["ref", 0], w["ref", 1])
-    assert_bit_equal(w["ref", 0], w["split", 0])
-    assert_bit_equal(w["ref", 1], w["split", 1])
-    with ckpt.safe_open(str(ckpt.latest_checkpoint(tmp_path / "split") / ckpt.STATE_FILE), framework="pt") as fh:
+    w = {(n, r): load_file(str(tmp_path / f"{n}-{r}.st")) for n in ("ddp", "resumed") for r in (0, 1)}
+    assert_bit_equal(w["ddp", 0], w["ddp", 1])
+    assert_bit_equal(w["ddp", 0], w["resumed", 0])
+    assert_bit_equal(w["ddp", 1], w["resumed", 1])
+    with ckpt.safe_open(str(ckpt.latest_checkpoint(tmp_path / "resumed") / ckpt.STATE_FILE), framework="pt") as fh:
         assert {"rank0.generator", "rank1.generator"} <= set(fh.keys())
+
+    one = ShardedToyTask(world=1)  # rank 0's init, every row of every common batch
+    train(one, ddp_cfg(12), tmp_path / "one", None, progress=False)
+    start = ShardedToyTask(world=1).net.state_dict()
+    for k, ref in one.net.state_dict().items():
+        assert not torch.allclose(ref, start[k], atol=1e-3), f"{k} barely trained: the test would prove nothing"
+        torch.testing.assert_close(w["ddp", 0][k], ref, rtol=1e-5, atol=1e-6, msg=lambda m: f"{k}: {m}")
 
 
 def test_non_finite_loss_stops_training(tmp_path: Path):
     class NanTask(ToyTask):
-        def loss(self, batch, generator):
-            loss, scalars = super().loss(batch, generator)
+        def loss(self, batch, generator, model=None):
+            loss, scalars = super().loss(batch, generator, model)
             return loss * float("nan") if self.calls > 3 else loss, scalars
 
     with pytest.raises(FloatingPointError, match="step 4"):
