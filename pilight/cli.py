@@ -107,6 +107,13 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("-o", "--out", type=Path, required=True, metavar="OUT")
     b.add_argument("--size", type=int, default=256, help="ball image size in pixels")
     _light_options(b)
+    pr = sub.add_parser("profile", help="compose a profile overlay (e.g. profiles/paper.yaml) with params.yaml",
+                        description="Write BASE with PROFILE's keys over it, validated (pilight/profiles.py).")
+    pr.add_argument("profile", type=Path, metavar="PROFILE", help="the overlay: only the keys that differ")
+    pr.add_argument("-o", "--out", type=Path, required=True, help="the composed params file (may be BASE itself)")
+    pr.add_argument("--base", type=Path, default=Path("params.yaml"), help="default: params.yaml")
+    pr.add_argument("--no-check-paths", action="store_true",
+                    help="do not require the weight folders (codec, unet, CLIP, DINOv2 paths) to exist here")
     return ap
 
 
@@ -403,10 +410,23 @@ def cmd_ball(args) -> int:
     return 0
 
 
+def cmd_profile(args) -> int:
+    from pilight.params import ParamsError
+    from pilight.profiles import write_profile
+
+    try:
+        raw = write_profile(args.base, args.profile, args.out, check_paths=not args.no_check_paths)
+    except ParamsError as exc:
+        raise CliError(str(exc), code=2) from None
+    print(f"{args.out}: {args.base} with {args.profile} over it ({len(raw)} sections, validated)")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return {"decompose": cmd_decompose, "relight": cmd_relight, "ball": cmd_ball}[args.command](args)
+        return {"decompose": cmd_decompose, "relight": cmd_relight, "ball": cmd_ball,
+                "profile": cmd_profile}[args.command](args)
     except CliError as exc:
         print(f"pilight {args.command}: {exc}", file=sys.stderr)
         return exc.code

@@ -23,6 +23,13 @@ class ParamsError(ValueError):
     """params.yaml is missing, malformed or holds a value outside what is allowed."""
 
 
+def _weights_folder(value: str | None, key: str, info: ValidationInfo) -> None:
+    """A local weights folder (VAE, UNet, CLIP, DINOv2) must exist, unless the validation was told not to
+    look: context {"check_paths": False}, e.g. a profile checked on a machine that lacks the weights."""
+    if value and (info.context or {}).get("check_paths", True) and not Path(value).is_dir():
+        raise ValueError(f"{key} {value!r} does not exist")
+
+
 class _Section(BaseModel):
     # allow_inf_nan=False: a NaN or Inf anywhere (a light's elevation, a CFG scale) is refused by key,
     # not found later as NaN lights in scene.json or saturated images written with exit 0.
@@ -224,11 +231,10 @@ class CodecParams(_Section):
     path: str | None = Field(None, description="local AutoencoderKL folder (e.g. Stable Diffusion 2's vae/) for kind: vae")
 
     @model_validator(mode="after")
-    def _path(self) -> "CodecParams":
+    def _path(self, info: ValidationInfo) -> "CodecParams":
         if self.kind == "vae" and not self.path:
             raise ValueError("codec.kind is 'vae' but codec.path is not set (a local AutoencoderKL folder)")
-        if self.path and not Path(self.path).is_dir():
-            raise ValueError(f"codec.path {self.path!r} does not exist")
+        _weights_folder(self.path, "codec.path", info)
         return self
 
 
@@ -241,11 +247,10 @@ class UNetParams(_Section):
     cross_attention_dim: int = Field(128, ge=1)
 
     @model_validator(mode="after")
-    def _path(self) -> "UNetParams":
+    def _path(self, info: ValidationInfo) -> "UNetParams":
         if self.init == "pretrained" and not self.path:
             raise ValueError("unet.init is 'pretrained' but unet.path is not set (a local UNet folder)")
-        if self.path and not Path(self.path).is_dir():
-            raise ValueError(f"unet.path {self.path!r} does not exist")
+        _weights_folder(self.path, "unet.path", info)
         return self
 
 
@@ -254,11 +259,10 @@ class ConditioningParams(_Section):
     clip_path: str | None = None
 
     @model_validator(mode="after")
-    def _path(self) -> "ConditioningParams":
+    def _path(self, info: ValidationInfo) -> "ConditioningParams":
         if self.kind == "clip" and not self.clip_path:
             raise ValueError("conditioning.kind is 'clip' but conditioning.clip_path is not set")
-        if self.clip_path and not Path(self.clip_path).is_dir():
-            raise ValueError(f"conditioning.clip_path {self.clip_path!r} does not exist")
+        _weights_folder(self.clip_path, "conditioning.clip_path", info)
         return self
 
 
@@ -376,7 +380,7 @@ class RelightParams(ModelParams):
         return v
 
     @model_validator(mode="after")
-    def _dinov2(self) -> "RelightParams":
+    def _dinov2(self, info: ValidationInfo) -> "RelightParams":
         if self.relit_resolution == "cell" and self.relit_target == "image":
             raise ValueError("relit_resolution 'cell' smooths the relit branch's CHANGE of the input, so it needs "
                              "relit_target 'residual' or 'gain', not 'image'")
@@ -386,8 +390,7 @@ class RelightParams(ModelParams):
                              f"gain (got decomposition: {self.decomposition}, relit_target: {self.relit_target!r})")
         if self.rec_features == "dinov2" and not self.dinov2_path:
             raise ValueError("rec_features is 'dinov2' but dinov2_path is not set (a local DINOv2 folder)")
-        if self.dinov2_path and not Path(self.dinov2_path).is_dir():
-            raise ValueError(f"dinov2_path {self.dinov2_path!r} does not exist")
+        _weights_folder(self.dinov2_path, "dinov2_path", info)
         return self
 
 
@@ -478,7 +481,7 @@ def _format(section: str, err: ValidationError) -> str:
     return "\n".join(lines)
 
 
-class _UniqueKeyLoader(yaml.SafeLoader):
+class UniqueKeyLoader(yaml.SafeLoader):
     """SafeLoader that refuses a key given twice in one mapping (plain YAML keeps the last silently)."""
 
     def construct_mapping(self, node, deep=False):
@@ -499,7 +502,7 @@ def read_params(path: str | Path) -> dict:
     if not path.is_file():
         raise ParamsError(f"{path}: params file not found")
     try:
-        raw = yaml.load(path.read_text(), Loader=_UniqueKeyLoader) or {}
+        raw = yaml.load(path.read_text(), Loader=UniqueKeyLoader) or {}
     except yaml.YAMLError as exc:
         raise ParamsError(f"{path}: not valid YAML ({exc})") from exc
     if not isinstance(raw, dict):
@@ -510,14 +513,29 @@ def read_params(path: str | Path) -> dict:
     return raw
 
 
-def load_section(name: str, path: str | Path = "params.yaml", cls: type[BaseModel] | None = None):
-    """Read one section of params.yaml and validate it; raise ParamsError naming key and value."""
+def load_section(name: str, path: str | Path = "params.yaml", cls: type[BaseModel] | None = None, *,
+                 check_paths: bool = True):
+    """Read one section of params.yaml and validate it; raise ParamsError naming key and value.
+    ``check_paths=False`` skips the weight folders' existence checks (their values are still validated)."""
     path = Path(path)
     raw = read_params(path)
     if name not in raw:
         raise ParamsError(f"{path}: missing section '{name}'")
     model = cls or SECTIONS[name]
     try:
-        return model.model_validate(raw[name] or {})
+        return model.model_validate(raw[name] or {}, context={"check_paths": check_paths})
     except ValidationError as exc:
         raise ParamsError(f"{path}: " + _format(name, exc)) from None
+
+
+def validate_sections(raw: dict, where: str | Path, *, check_paths: bool = True) -> dict[str, BaseModel]:
+    """Every known section of a whole params mapping, validated; ParamsError naming ``where`` and the key."""
+    out = {}
+    for name, model in SECTIONS.items():
+        if name in raw:
+            try:
+                out[name] = model.model_validate(raw[name] or {}, context={"check_paths": check_paths})
+            except ValidationError as exc:
+                raise ParamsError(f"{where}: " + _format(name, exc)) from None
+    return out
+

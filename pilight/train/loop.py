@@ -3,9 +3,12 @@
 A stage script builds a :class:`Task` and calls :func:`train`.  The same script runs
 
 * on one process (CPU, or one GPU):   ``python stages/train_intrinsics.py``
+* data-parallel on 2 CPU processes:   ``OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 stages/train_intrinsics.py``
 * data-parallel on 8 GPUs:            ``accelerate launch --multi_gpu --num_processes 8 stages/train_intrinsics.py``
-* DeepSpeed ZeRO-2:
+* DeepSpeed ZeRO-2 (the paper's; not run here: it needs GPUs and the deepspeed package):
   ``accelerate launch --use_deepspeed --zero_stage 2 --num_processes 8 stages/train_intrinsics.py``
+
+``train.batch_size`` is per process: N processes train on N x batch_size samples per step.
 
 ``accelerate`` handles device placement, autocast (``mixed_precision``), gradient accumulation,
 fp16 loss scaling, the process group and the data-parallel wrapper: the trainable module goes
