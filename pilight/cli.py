@@ -18,6 +18,14 @@ front (0, 0) as (azimuth, elevation). An HDRI is a 2:1 lat-long panorama whose c
 ahead of the camera; --rotate +DEG turns it clockwise seen from above (what was DEG to the left
 comes from straight ahead).
 
+Several processes (one per GPU, or CPU processes) share a folder of photos when launched by
+`accelerate launch` or `torchrun`: each takes its own contiguous share of the photos (accelerate's
+split_between_processes), so every output is written by exactly one process, and a rerun skips
+what is complete:
+
+    accelerate launch --num_processes 8 -m pilight.cli relight photos/ -o out/ --light left
+    OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m pilight.cli decompose photos/ -o out/
+
 Exit status: 0 done, 1 bad input, model or output folder (nothing written), 2 bad options.
 """
 
@@ -206,8 +214,30 @@ def relight_files(folder: Path, branches) -> list[Path]:
             + [folder / "ball.exr", folder / "ball.png", folder / "contact.png"])
 
 
+# --- several processes ------------------------------------------------------------------------------
+def _launched_processes():
+    """accelerate's process state under `accelerate launch` / torchrun (WORLD_SIZE > 1), else None."""
+    if int(os.environ.get("WORLD_SIZE", "1")) <= 1:
+        return None
+    import torch
+    from accelerate import PartialState
+
+    # cpu=True when there is no GPU: accelerate then starts the gloo process group (multi-CPU)
+    return PartialState(cpu=not torch.cuda.is_available())
+
+
+def _my_share(photos: list[Path], state) -> list[Path]:
+    """This process's contiguous share of ``photos`` (all of them on one process). The split is of the
+    full, sorted input list, before any completeness check: a check made while another process writes
+    could differ between processes and give a photo to two of them, or to none."""
+    if state is None:
+        return photos
+    with state.split_between_processes(photos) as mine:
+        return list(mine)
+
+
 # --- commands --------------------------------------------------------------------------------------
-def _pipeline(args, stage: str):
+def _pipeline(args, stage: str, state=None):
     from pilight.params import ParamsError
     from pilight.pipeline import PILightPipeline, PipelineError, PIPELINE_FILE
 
@@ -220,8 +250,11 @@ def _pipeline(args, stage: str):
         raise CliError(f"--cfg must be >= 0, got {args.cfg}", 2)
     if args.max_memory is not None and args.max_memory <= 0:
         raise CliError(f"--max-memory must be > 0 GiB, got {args.max_memory}", 2)
+    device = args.device
+    if state is not None and device == "auto":  # one device per process: cuda:<local rank>, or the CPU
+        device = str(state.device)
     try:
-        pipe = PILightPipeline.from_pretrained(args.models, device=args.device, params=args.params)
+        pipe = PILightPipeline.from_pretrained(args.models, device=device, params=args.params)
     except ParamsError as exc:
         raise CliError(str(exc), 2) from None
     except PipelineError as exc:
@@ -269,10 +302,18 @@ def _check_photos(pipe, photos: list[Path], lights: int, max_memory_gib: float |
         raise CliError("\n".join(errors) + f"\nnothing was written ({len(errors)} of {len(photos)} photo(s) refused)")
 
 
-def _progress(total: int, desc: str):
+def _progress(total: int, desc: str, state=None):
     from tqdm import tqdm
 
-    return tqdm(total=total, desc=desc, unit="photo", dynamic_ncols=True, file=sys.stderr)
+    if state is not None:
+        desc = f"{desc} [process {state.process_index}/{state.num_processes}]"
+    return tqdm(total=total, desc=desc, unit="photo", dynamic_ncols=True, file=sys.stderr,
+                position=0 if state is None else state.process_index)
+
+
+def _done_together(state) -> None:
+    if state is not None:
+        state.wait_for_everyone()
 
 
 def cmd_decompose(args) -> int:
@@ -281,14 +322,16 @@ def cmd_decompose(args) -> int:
     photos = expand_inputs(args.photos)
     names = output_names(photos)
     check_writable(args.out)
-    pipe = _pipeline(args, "intrinsics")
+    state = _launched_processes()
+    pipe = _pipeline(args, "intrinsics", state)
     _check_photos(pipe, photos, 0, args.max_memory)
-    todo = [p for p in photos if args.overwrite or not _complete(decompose_files(args.out / names[p]))]
-    if len(todo) < len(photos):
-        print(f"pilight: {len(photos) - len(todo)} photo(s) already decomposed in {args.out}, skipped "
+    mine = _my_share(photos, state)
+    todo = [p for p in mine if args.overwrite or not _complete(decompose_files(args.out / names[p]))]
+    if len(todo) < len(mine):
+        print(f"pilight: {len(mine) - len(todo)} photo(s) already decomposed in {args.out}, skipped "
               "(--overwrite redoes them)", file=sys.stderr)
     failed = 0
-    with _progress(len(todo), "decompose") as bar:
+    with _progress(len(todo), "decompose", state) as bar:
         for p in todo:
             try:
                 photo = read_photo(p)
@@ -308,6 +351,7 @@ def cmd_decompose(args) -> int:
             bar.set_postfix_str(f"{p.name} at {d.processing_size[1]}x{d.processing_size[0]}")
             bar.update(1)
     print(f"pilight: decomposed {len(todo) - failed} photo(s) into {args.out}", file=sys.stderr)
+    _done_together(state)
     return 1 if failed else 0
 
 
@@ -358,18 +402,19 @@ def cmd_relight(args) -> int:
     photos = expand_inputs(args.photos)
     names = output_names(photos)
     check_writable(args.out)
-    pipe = _pipeline(args, "relight")
+    state = _launched_processes()
+    pipe = _pipeline(args, "relight", state)
     _check_photos(pipe, photos, len(lights), args.max_memory)
     branches = pipe.relight_task.branches
     pending = {p: [l for l in lights if args.overwrite or not _complete(relight_files(args.out / names[p] / l.name, branches))]
-               for p in photos}
-    todo = [p for p in photos if pending[p]]
+               for p in _my_share(photos, state)}
+    todo = [p for p in pending if pending[p]]
     skipped = sum(len(lights) - len(v) for v in pending.values())
     if skipped:
         print(f"pilight: {skipped} (photo, light) output(s) already complete in {args.out}, skipped "
               "(--overwrite redoes them)", file=sys.stderr)
     failed = 0
-    with _progress(len(todo), f"relight x{len(lights)} light(s)") as bar:
+    with _progress(len(todo), f"relight x{len(lights)} light(s)", state) as bar:
         for p in todo:
             try:
                 photo = read_photo(p)
@@ -393,6 +438,7 @@ def cmd_relight(args) -> int:
             bar.set_postfix_str(p.name)
             bar.update(1)
     print(f"pilight: relit {len(todo) - failed} photo(s) under {len(lights)} light(s) into {args.out}", file=sys.stderr)
+    _done_together(state)
     return 1 if failed else 0
 
 
