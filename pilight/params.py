@@ -177,6 +177,19 @@ class CyclesParams(_Section):
     threads: int = Field(0, ge=0, description="0 = all cores")
 
 
+class ClusterParams(_Section):
+    """Where the render runs (README "Rendering on a cluster"); none of it changes a rendered byte, so
+    these keys are not in the views' stamps nor in dvc.yaml's params of the render stage."""
+    executor: Literal["local", "dask"] = Field("local", description=(
+        "local = in this process; dask = partitions of scenes as tasks on a Dask cluster (pilight.render.cluster)"))
+    address: str | None = Field(None, description="a running Dask scheduler (tcp://host:8786); null = a local "
+                                                   "cluster of `workers` processes on this machine")
+    workers: int = Field(2, ge=1, le=4096, description="processes of the local cluster (address: null)")
+    scenes_per_task: int = Field(4, ge=1, description="scenes per partition: one task, one marker")
+    retries: int = Field(2, ge=0, le=100, description="reruns of a partition whose task raised (a killed worker's "
+                                                      "partition is rescheduled by Dask itself)")
+
+
 class RenderParams(_Section):
     resolution: int = Field(128, ge=8, le=MAX_RESOLUTION)
     scenes: SplitCounts = SplitCounts(train=8, val=1, test=3)
@@ -186,6 +199,7 @@ class RenderParams(_Section):
     light: LightParams = LightParams()
     hdri: HdriParams = HdriParams()
     scene: SceneParams = SceneParams()
+    cluster: ClusterParams = ClusterParams()
     lambertian_ball: bool = Field(True, description="also write the pure-diffuse ball (free: same render)")
     ball_resolution: int = Field(32, ge=16, le=MAX_RESOLUTION, description="the light ball's own size; it is a smooth probe (16x32 env map)")
     ball_samples: int = Field(32, ge=1, le=MAX_SAMPLES, description="Cycles samples for the ball (adaptive threshold as the scene)")

@@ -76,7 +76,8 @@ def _render(scene, tmp_dir: Path) -> dict[str, np.ndarray]:
 
 def view_stamp(spec: dict, view: int, p: RenderParams) -> str:
     """sha256 of what one view's files are made from (module docstring); the `.done` marker's content."""
-    made_from = {"spec": spec, "view": view, "render": p.model_dump(mode="json", exclude={"scenes"}),
+    # scenes: the counts decide which scenes exist, not how one looks; cluster: where it is rendered
+    made_from = {"spec": spec, "view": view, "render": p.model_dump(mode="json", exclude={"scenes", "cluster"}),
                  "blender": bpy.app.version_string}
     return hashlib.sha256(json.dumps(made_from, sort_keys=True).encode()).hexdigest()
 
@@ -165,41 +166,62 @@ def render_dataset(p: RenderParams, base: BaseParams, root: Path, *, progress: b
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     with blender_output_to(blender_log) as terminal:
-        return _render_all(p, base, root, progress=progress, terminal=terminal)
+        return _render_all(p, base, root, progress=progress, terminal=terminal, blender_log=blender_log)
 
 
-def _render_all(p: RenderParams, base: BaseParams, root: Path, *, progress: bool, terminal) -> dict:
+def render_scene(spec: dict, p: RenderParams, root: Path, hdri_dir: Path, tmp_dir: Path, on_bundles=None) -> int:
+    """Render the views of one scene that are not complete, and its scene.json; returns the bundles
+    rendered. ``on_bundles(n)`` is called as bundles finish (or are found complete)."""
+    tick = on_bundles or (lambda n: None)
+    sid = spec["id"]
+    pending = [v for v in range(len(spec["views"])) if not view_is_complete(root, spec, v, p)]
+    if not pending and (root / sid / "scene.json").is_file():
+        tick(sum(len(v) for v in spec["lights"]))
+        return 0
+    handles = S.build(spec, p, hdri_dir)
+    rendered = 0
+    for v in range(len(spec["views"])):
+        if v in pending:
+            render_view(handles, spec, v, root, tmp_dir, lambertian=p.lambertian_ball, on_bundle=lambda: tick(1),
+                        stamp=view_stamp(spec, v, p))
+            rendered += len(spec["lights"][v])
+        else:
+            tick(len(spec["lights"][v]))
+    write_json(root / sid / "scene.json", scene_sidecar(spec, handles, p))
+    return rendered
+
+
+def manifest_entry(spec: dict) -> dict:
+    return {"id": spec["id"], "kind": spec["kind"], "split": spec["split"], "views": len(spec["views"]),
+            "lights": len(spec["lights"][0]),
+            "hdris": sorted({l["hdri"]["name"] for v in spec["lights"] for l in v if l["hdri"]})}
+
+
+def _render_all(p: RenderParams, base: BaseParams, root: Path, *, progress: bool, terminal,
+                blender_log: Path | None = None) -> dict:
     hdri_dir = Path(p.hdri.dir) if p.hdri.dir else bundled_hdri_dir()
     specs = all_specs(p, base)
     total = sum(len(v) for s in specs for v in s["lights"])
     bar = tqdm(total=total, desc="render (view, light) bundles", unit="bundle", disable=not progress,
                file=terminal)
-    manifest, t0 = [], time.perf_counter()
+    t0 = time.perf_counter()
     (root / "manifest.json").unlink(missing_ok=True)  # written last: its presence means the folder is complete
     remove_unasked(root, specs)
-    tmp_dir = Path(tempfile.mkdtemp(prefix=".render_tmp_", dir=root))
     try:
-        for spec in specs:
-            sid = spec["id"]
-            pending = [v for v in range(len(spec["views"])) if not view_is_complete(root, spec, v, p)]
-            if pending or not (root / sid / "scene.json").is_file():
-                handles = S.build(spec, p, hdri_dir)
-                for v in range(len(spec["views"])):
-                    if v in pending:
-                        render_view(handles, spec, v, root, tmp_dir, lambertian=p.lambertian_ball, on_bundle=bar.update,
-                                    stamp=view_stamp(spec, v, p))
-                    else:
-                        bar.update(len(spec["lights"][v]))
-                write_json(root / sid / "scene.json", scene_sidecar(spec, handles, p))
-            else:
-                bar.update(sum(len(v) for v in spec["lights"]))
-            manifest.append({"id": sid, "kind": spec["kind"], "split": spec["split"], "views": len(spec["views"]),
-                             "lights": len(spec["lights"][0]),
-                             "hdris": sorted({l["hdri"]["name"] for v in spec["lights"] for l in v if l["hdri"]})})
+        if p.cluster.executor == "dask":
+            from pilight.render.cluster import render_on_dask
+
+            render_on_dask(specs, p, root, hdri_dir, bar.update, blender_log)
+        else:
+            tmp_dir = Path(tempfile.mkdtemp(prefix=".render_tmp_", dir=root))
+            try:
+                for spec in specs:
+                    render_scene(spec, p, root, hdri_dir, tmp_dir, bar.update)
+            finally:
+                shutil.rmtree(tmp_dir, ignore_errors=True)
     finally:
-        shutil.rmtree(tmp_dir, ignore_errors=True)
         bar.close()
     write_json(root / "manifest.json", {"blender_version": bpy.app.version_string, "resolution": p.resolution,
-                                        "scenes": manifest})
+                                        "scenes": [manifest_entry(s) for s in specs]})
     seconds = time.perf_counter() - t0
     return {"bundles": total, "seconds": seconds}

@@ -183,3 +183,65 @@ def test_user_asset_is_rendered_with_its_material(tmp_path, suffix):
     assert cube.sum() > 20, "the asset is visible, Principled, with its own base colour"
     np.testing.assert_allclose(rough[cube], 0.3, atol=2e-3)
     assert json.loads((view.parent / "scene.json").read_text())["spec"]["assets"][0]["asset"] == str(asset)
+
+
+# --- render.cluster.executor: dask (pilight/render/cluster.py) -------------------------------------------
+def rendered_files(root: Path) -> dict[str, str]:
+    """The rendered dataset, without the Dask partition markers (bookkeeping of the executor)."""
+    return {k: v for k, v in tree_digest(root).items() if not k.startswith(".partitions/")}
+
+
+@pytest.fixture(scope="module")
+def dask_cluster():
+    pytest.importorskip("distributed", reason="dask.distributed (the test extra) is not installed")
+    from dask.distributed import Client, LocalCluster
+
+    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)
+    client = Client(cluster)
+    yield cluster.scheduler_address, client
+    client.close()
+    cluster.close()
+
+
+def test_dask_render_survives_killed_workers_with_the_in_process_bytes(reference, tmp_path, dask_cluster):
+    """2 workers of a running cluster (render.cluster.address); both are SIGKILLed once the first view is
+    done. Dask restarts them and resubmits their partitions; the dataset equals the in-process render."""
+    _, first = reference
+    address, client = dask_cluster
+    params = write_params(tmp_path / "params.yaml", cluster={"executor": "dask", "address": address, "scenes_per_task": 1})
+    out = tmp_path / "renders"
+    proc = subprocess.Popen(stage_args(params, out), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 300
+    while time.time() < deadline and not list(out.rglob(".done")) and proc.poll() is None:
+        time.sleep(0.05)
+    killed = list(client.run(os.getpid).values())
+    for pid in killed:
+        os.kill(pid, signal.SIGKILL)
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err[-3000:]
+    assert rendered_files(out) == rendered_files(first)
+    assert len(list((out / ".partitions").glob("*.done"))) == 3  # one marker per partition of 1 scene
+    client.wait_for_workers(2, timeout=60)
+    assert not set(client.run(os.getpid).values()) & set(killed), "the workers were not restarted: nothing was killed"
+
+
+def test_dask_render_names_a_failing_scene_and_keeps_the_other_partitions(reference, tmp_path):
+    """A local cluster started by the stage (address: null). One scene cannot be written (its folder
+    is a file): the stage fails naming it, writes no manifest, and keeps every other partition; the
+    rerun after the fix renders only that scene and ends byte-identical to the in-process render."""
+    _, first = reference
+    params = write_params(tmp_path / "params.yaml", cluster={"executor": "dask", "workers": 2, "scenes_per_task": 1})
+    out = tmp_path / "renders"
+    out.mkdir()
+    (out / "train_0001").write_text("not a folder")
+    r = run_stage(params, out)
+    assert r.returncode == 1
+    assert "1 of 3 render partition(s) failed" in r.stderr and "scene train_0001" in r.stderr, r.stderr[-3000:]
+    assert not (out / "manifest.json").exists()
+    kept = {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file() and "train_0001" not in str(p)}
+    assert any(p.name == ".done" for p in kept) and len({p.parts[len(out.parts)] for p in kept if p.name == ".done"}) == 2
+    (out / "train_0001").unlink()
+    r = run_stage(params, out)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert rendered_files(out) == rendered_files(first)
+    assert all(p.stat().st_mtime_ns == t for p, t in kept.items() if p.exists()), "a finished partition was redone"
