@@ -8,8 +8,10 @@ profile (tests/test_pipeline_e2e.py's), so it takes minutes, not hours:
 
 1. a clean `dvc repro` gives the reference digest of every deterministic output and each stage's time;
 2. each kill picks a stage (render, shard, train_intrinsics, infer_intrinsics, train_relight,
-   relight), runs `dvc repro --force --single-item STAGE` in its own process group and SIGKILLs the
-   group after a random fraction of that stage's clean time;
+   relight), removes its `persist: true` work (the renders, the training checkpoints: otherwise the
+   forced run would find everything done and finish before the kill), runs
+   `dvc repro --force --single-item STAGE` in its own process group and SIGKILLs the group after a
+   random fraction of that stage's clean time;
 3. then plain `dvc repro` (what a user types after a crash) must finish, and every output must
    match the reference byte for byte.
 
@@ -25,6 +27,7 @@ import argparse
 import hashlib
 import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -36,6 +39,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 STAGES = ["render", "shard", "train_intrinsics", "infer_intrinsics", "train_relight", "relight"]
 COMPARED = ["data/renders", "data/shards", "models/intrinsics", "data/intrinsics_pred", "models/relight", "data/relit"]
+PERSISTED = {"render": ["data/renders"], "train_intrinsics": ["checkpoints/intrinsics"],
+             "train_relight": ["checkpoints/relight"]}  # dvc.yaml's persist: true outputs
 
 
 def micro_project(d: Path) -> dict:
@@ -87,10 +92,14 @@ def main(argv: list[str] | None = None) -> int:
         after = rng.uniform(0.1, 0.9) * clean[stage]
         log.write(f"\n=== kill {k}: {stage} after {after:.1f} s\n")
         log.flush()
+        for rel in PERSISTED.get(stage, []):
+            shutil.rmtree(d / rel, ignore_errors=True)
+        finished = False
         proc = subprocess.Popen([sys.executable, "-m", "dvc", "repro", "--force", "--single-item", stage], cwd=d, env=env,
                                 stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
         try:
             proc.wait(timeout=after)
+            finished = True  # the stage ended before its kill time: this kill interrupted nothing
         except subprocess.TimeoutExpired:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
@@ -99,7 +108,8 @@ def main(argv: list[str] | None = None) -> int:
         redone = sum(clean[s] for s in [*STAGES, "evaluate", "trade", "render_trade"][STAGES.index(stage):])
         same = rc == 0 and digest(d) == reference
         survived += same
-        print(f"| {k} | {stage} | {after:.1f} s | {rc} | {'yes' if same else 'NO'} | {seconds:.0f} | {redone:.0f} |", flush=True)
+        when = f"{after:.1f} s" + (" (it had ended)" if finished else "")
+        print(f"| {k} | {stage} | {when} | {rc} | {'yes' if same else 'NO'} | {seconds:.0f} | {redone:.0f} |", flush=True)
     print(f"survived {survived} of {args.kills} kills")
     return 0 if survived == args.kills else 1
 
