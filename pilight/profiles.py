@@ -16,7 +16,7 @@ from pathlib import Path
 import yaml
 
 from pilight import atomic
-from pilight.params import ParamsError, UniqueKeyLoader, read_params, validate_sections
+from pilight.params import ParamsError, read_params, validate_sections
 
 
 def compose(base: dict, overlay: dict, where: str = "") -> dict:
@@ -35,23 +35,9 @@ def compose(base: dict, overlay: dict, where: str = "") -> dict:
     return out
 
 
-def read_overlay(path: Path) -> dict:
-    """An overlay file: YAML, no duplicate keys, a mapping of known sections (like params.yaml)."""
-    path = Path(path)
-    if not path.is_file():
-        raise ParamsError(f"{path}: profile not found")
-    try:
-        raw = yaml.load(path.read_text(), Loader=UniqueKeyLoader) or {}
-    except yaml.YAMLError as exc:
-        raise ParamsError(f"{path}: not valid YAML ({exc})") from exc
-    if not isinstance(raw, dict):
-        raise ParamsError(f"{path}: want a mapping of sections, got {type(raw).__name__}")
-    return raw
-
-
 def compose_files(base: Path, overlay: Path) -> dict:
     try:
-        return compose(read_params(base), read_overlay(overlay))
+        return compose(read_params(base), read_params(overlay))  # an overlay reads as a params file
     except ParamsError as exc:
         msg = str(exc)
         raise ParamsError(msg if msg.startswith(str(overlay)) or msg.startswith(str(base)) else f"{overlay}: {msg}") from None
