@@ -535,21 +535,17 @@ def load_section(name: str, path: str | Path = "params.yaml", cls: type[BaseMode
     raw = read_params(path)
     if name not in raw:
         raise ParamsError(f"{path}: missing section '{name}'")
-    model = cls or SECTIONS[name]
+    return _validate(cls or SECTIONS[name], name, raw[name], path, check_paths)
+
+
+def _validate(model: type[BaseModel], name: str, raw, where: str | Path, check_paths: bool) -> BaseModel:
     try:
-        return model.model_validate(raw[name] or {}, context={"check_paths": check_paths})
+        return model.model_validate(raw or {}, context={"check_paths": check_paths})
     except ValidationError as exc:
-        raise ParamsError(f"{path}: " + _format(name, exc)) from None
+        raise ParamsError(f"{where}: " + _format(name, exc)) from None
 
 
 def validate_sections(raw: dict, where: str | Path, *, check_paths: bool = True) -> dict[str, BaseModel]:
     """Every known section of a whole params mapping, validated; ParamsError naming ``where`` and the key."""
-    out = {}
-    for name, model in SECTIONS.items():
-        if name in raw:
-            try:
-                out[name] = model.model_validate(raw[name] or {}, context={"check_paths": check_paths})
-            except ValidationError as exc:
-                raise ParamsError(f"{where}: " + _format(name, exc)) from None
-    return out
+    return {name: _validate(model, name, raw[name], where, check_paths) for name, model in SECTIONS.items() if name in raw}
 

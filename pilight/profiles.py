@@ -36,11 +36,11 @@ def compose(base: dict, overlay: dict, where: str = "") -> dict:
 
 
 def compose_files(base: Path, overlay: Path) -> dict:
+    base_raw, overlay_raw = read_params(base), read_params(overlay)  # an overlay reads as a params file
     try:
-        return compose(read_params(base), read_params(overlay))  # an overlay reads as a params file
+        return compose(base_raw, overlay_raw)
     except ParamsError as exc:
-        msg = str(exc)
-        raise ParamsError(msg if msg.startswith(str(overlay)) or msg.startswith(str(base)) else f"{overlay}: {msg}") from None
+        raise ParamsError(f"{overlay}: {exc}") from None
 
 
 def write_profile(base: Path, overlay: Path, out: Path, *, check_paths: bool = True) -> dict:

@@ -87,6 +87,12 @@ class DomainDiffusion(nn.Module):
         """Cross-attention tokens for [-1, 1] condition images (B x T x D)."""
         return self.conditioning(images)
 
+    def condition_states(self, images: torch.Tensor, drop: torch.Tensor | None = None) -> torch.Tensor:
+        """embed(images), with the samples flagged in ``drop`` given the null (zero) state: classifier-free
+        guidance's dropout in training, and its unconditional branch when sampling."""
+        ehs = self.embed(images)
+        return ehs if drop is None else torch.where(drop[:, None, None], null_like(ehs), ehs)
+
     def forward(self, noisy_latents: torch.Tensor, cond_latents: torch.Tensor, timesteps: torch.Tensor,
                 domain_ids: torch.Tensor, encoder_hidden_states: torch.Tensor | None = None, *,
                 condition_images: torch.Tensor | None = None, drop: torch.Tensor | None = None) -> torch.Tensor:
@@ -99,9 +105,7 @@ class DomainDiffusion(nn.Module):
         if (encoder_hidden_states is None) == (condition_images is None):
             raise ValueError("give exactly one of encoder_hidden_states and condition_images")
         if encoder_hidden_states is None:
-            ehs = self.conditioning(condition_images)
-            if drop is not None:
-                ehs = torch.where(drop[:, None, None], null_like(ehs), ehs)
+            ehs = self.condition_states(condition_images, drop)
             if n % ehs.shape[0]:
                 raise ValueError(f"{ehs.shape[0]} condition images for a batch of {n} items")
             encoder_hidden_states = ehs.repeat_interleave(n // ehs.shape[0], 0)

@@ -101,6 +101,7 @@ def render_partition(part: list[dict], params_json: dict, root: str, hdri_dir: s
 def render_on_dask(specs: list[dict], p, root: Path, hdri_dir: Path, on_bundles: Callable[[int], object],
                    blender_log: Path | None) -> list[dict]:
     """Submit every incomplete partition, wait for all of them; RenderError naming the failed scenes."""
+    from pilight.render import dataset
     from pilight.render.scene import RenderError
 
     try:
@@ -113,7 +114,7 @@ def render_on_dask(specs: list[dict], p, root: Path, hdri_dir: Path, on_bundles:
     todo = []
     for part in parts:
         if partition_is_complete(root, part, p):
-            on_bundles(sum(len(v) for s in part for v in s["lights"]))
+            on_bundles(dataset.bundles_of(part))
         else:
             todo.append(part)
     if not todo:
@@ -135,7 +136,7 @@ def render_on_dask(specs: list[dict], p, root: Path, hdri_dir: Path, on_bundles:
             except Exception as exc:  # noqa: BLE001 - collected: the other partitions still finish
                 failed.append(f"{part[0]['id']}..{part[-1]['id']}: {exc}")
                 continue
-            on_bundles(sum(len(v) for s in part for v in s["lights"]))
+            on_bundles(dataset.bundles_of(part))
     finally:
         client.close()
         if cluster is not None:

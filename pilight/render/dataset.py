@@ -169,6 +169,11 @@ def render_dataset(p: RenderParams, base: BaseParams, root: Path, *, progress: b
         return _render_all(p, base, root, progress=progress, terminal=terminal, blender_log=blender_log)
 
 
+def bundles_of(specs: list[dict]) -> int:
+    """(view, light) bundles of these scenes: the unit of the render's progress."""
+    return sum(len(v) for s in specs for v in s["lights"])
+
+
 def render_scene(spec: dict, p: RenderParams, root: Path, hdri_dir: Path, tmp_dir: Path, on_bundles=None) -> int:
     """Render the views of one scene that are not complete, and its scene.json; returns the bundles
     rendered. ``on_bundles(n)`` is called as bundles finish (or are found complete)."""
@@ -176,7 +181,7 @@ def render_scene(spec: dict, p: RenderParams, root: Path, hdri_dir: Path, tmp_di
     sid = spec["id"]
     pending = [v for v in range(len(spec["views"])) if not view_is_complete(root, spec, v, p)]
     if not pending and (root / sid / "scene.json").is_file():
-        tick(sum(len(v) for v in spec["lights"]))
+        tick(bundles_of([spec]))
         return 0
     handles = S.build(spec, p, hdri_dir)
     rendered = 0
@@ -201,7 +206,7 @@ def _render_all(p: RenderParams, base: BaseParams, root: Path, *, progress: bool
                 blender_log: Path | None = None) -> dict:
     hdri_dir = Path(p.hdri.dir) if p.hdri.dir else bundled_hdri_dir()
     specs = all_specs(p, base)
-    total = sum(len(v) for s in specs for v in s["lights"])
+    total = bundles_of(specs)
     bar = tqdm(total=total, desc="render (view, light) bundles", unit="bundle", disable=not progress,
                file=terminal)
     t0 = time.perf_counter()

@@ -48,8 +48,7 @@ class Stack:
 
     def encode_condition(self, image: torch.Tensor, drop: torch.Tensor) -> torch.Tensor:
         """Cross-attention states (B, tokens, D); dropped samples get the null (zero) state."""
-        ehs = self.model.conditioning(image)
-        return torch.where(drop[:, None, None], null_like(ehs), ehs)
+        return self.model.condition_states(image, drop)
 
     def null_condition(self, ehs: torch.Tensor) -> torch.Tensor:
         return null_like(ehs)
