@@ -39,7 +39,12 @@ class _Section(BaseModel):
     @classmethod
     def _no_bool_numbers(cls, v, info: ValidationInfo):
         """YAML's true/false are ints to pydantic's lax mode, so `scenes.train: true` would count 1."""
-        if isinstance(v, bool) and cls.model_fields[info.field_name].annotation in (int, float, int | None, float | None):
+        if isinstance(v, bool) and cls.model_fields[info.field_name].annotation in (
+            int,
+            float,
+            int | None,
+            float | None,
+        ):
             raise ValueError("a boolean where a number is expected")
         return v
 
@@ -53,7 +58,7 @@ class Range(_Section):
     hi: float
 
     @model_validator(mode="after")
-    def _ordered(self) -> "Range":
+    def _ordered(self) -> Range:
         if self.lo > self.hi:
             raise ValueError(f"lo ({self.lo}) must not exceed hi ({self.hi})")
         return self
@@ -64,7 +69,7 @@ class IntRange(_Section):
     hi: int = Field(ge=0)
 
     @model_validator(mode="after")
-    def _ordered(self) -> "IntRange":
+    def _ordered(self) -> IntRange:
         if self.lo > self.hi:
             raise ValueError(f"lo ({self.lo}) must not exceed hi ({self.hi})")
         return self
@@ -91,11 +96,15 @@ class LightParams(_Section):
     jitter: float = Field(0.1, ge=0.0, le=0.5, description="relative random variation of strength")
     distance: float = Field(6.0, gt=0.0, description="point light distance from the scene centre (m)")
     radius: float = Field(0.1, ge=0.0, description="point light radius (soft shadows)")
-    hdri_probability: float = Field(0.2, ge=0.0, le=1.0, description="paper: 20% point light + env map, 80% point light alone")
+    hdri_probability: float = Field(
+        0.2, ge=0.0, le=1.0, description="paper: 20% point light + env map, 80% point light alone"
+    )
     hdri_strength: Range = Range(lo=0.3, hi=1.0)
     point_scale_with_hdri: float = Field(0.5, gt=0.0, le=1.0, description="point light is lowered when an HDRI is on")
     ambient: Range = Range(lo=0.01, hi=0.05)
-    room_back_light_deg: float = Field(30.0, ge=0.0, le=90.0, description="room scenes: extra light behind the camera within +- this angle")
+    room_back_light_deg: float = Field(
+        30.0, ge=0.0, le=90.0, description="room scenes: extra light behind the camera within +- this angle"
+    )
 
 
 class HdriParams(_Section):
@@ -104,7 +113,7 @@ class HdriParams(_Section):
     test_holdout: tuple[str, ...] = ("courtyard", "sunset")
 
     @model_validator(mode="after")
-    def _known(self) -> "HdriParams":
+    def _known(self) -> HdriParams:
         if self.dir is None:
             unknown = [n for n in self.names + self.test_holdout if n not in BUNDLED_HDRIS]
             if unknown:
@@ -126,17 +135,28 @@ class HdriParams(_Section):
 
 
 class SceneParams(_Section):
-    room_fraction: float = Field(0.5, ge=0.0, le=1.0, description="share of room/ground scenes; the rest are object scenes")
+    room_fraction: float = Field(
+        0.5, ge=0.0, le=1.0, description="share of room/ground scenes; the rest are object scenes"
+    )
     objects_object_scene: IntRange = IntRange(lo=1, hi=2)
     objects_room_scene: IntRange = IntRange(lo=3, hi=5)
     shapes: tuple[str, ...] = SHAPES
     textures: tuple[str, ...] = PROCEDURAL_TEXTURES
-    textured_probability: float = Field(0.6, ge=0.0, le=1.0, description="share of textured materials (shared) or maps (independent)")
+    textured_probability: float = Field(
+        0.6, ge=0.0, le=1.0, description="share of textured materials (shared) or maps (independent)"
+    )
     material_pattern: Literal["shared", "independent"] = Field(
-        "shared", description="shared: a textured material blends two sub-materials (colour, roughness, metal 0/1) "
-        "along one pattern, like a real asset's material mask; independent: each map its own texture and range")
+        "shared",
+        description="shared: a textured material blends two sub-materials (colour, roughness, metal 0/1) "
+        "along one pattern, like a real asset's material mask; independent: each map its own texture and range",
+    )
     non_principled_probability: float = Field(0.15, ge=0.0, le=1.0, description="glass/emission objects, masked out")
-    metallic_probability: float = Field(0.3, ge=0.0, le=1.0, description="share of (sub-)materials that are metal; textured metallic ranges are not (independent)")
+    metallic_probability: float = Field(
+        0.3,
+        ge=0.0,
+        le=1.0,
+        description="share of (sub-)materials that are metal; textured metallic ranges are not (independent)",
+    )
     modifier_probability: float = Field(0.5, ge=0.0, le=1.0, description="bevel / subdivision / displacement")
 
     @field_validator("shapes")
@@ -157,7 +177,7 @@ class SceneParams(_Section):
 
 
 # Upper limits where a runaway value costs hours, not a clear error (a typo'd extra digit).
-MAX_RESOLUTION = 4096   # the paper renders 768; 4096^2 is ~3 min per Cycles bundle on a GPU
+MAX_RESOLUTION = 4096  # the paper renders 768; 4096^2 is ~3 min per Cycles bundle on a GPU
 MAX_SAMPLES = 65536
 MAX_STEPS = 10_000_000
 MAX_CFG = 50.0
@@ -172,7 +192,11 @@ class CyclesParams(_Section):
     glossy_bounces: int = Field(2, ge=0)
     transmission_bounces: int = Field(4, ge=0)
     transparent_max_bounces: int = Field(4, ge=0)
-    world_map_resolution: int = Field(256, ge=16, description="importance map of the world (HDRI), built on every world edit; Blender's AUTOMATIC map costs ~0.8 s per HDRI render")
+    world_map_resolution: int = Field(
+        256,
+        ge=16,
+        description="importance map of the world (HDRI), built on every world edit; Blender's AUTOMATIC map costs ~0.8 s per HDRI render",
+    )
     device: Literal["CPU", "GPU"] = "CPU"
     threads: int = Field(0, ge=0, description="0 = all cores")
 
@@ -180,14 +204,27 @@ class CyclesParams(_Section):
 class ClusterParams(_Section):
     """Where the render runs (README "Rendering on a cluster"); none of it changes a rendered byte, so
     these keys are not in the views' stamps nor in dvc.yaml's params of the render stage."""
-    executor: Literal["local", "dask"] = Field("local", description=(
-        "local = in this process; dask = partitions of scenes as tasks on a Dask cluster (pilight.render.cluster)"))
-    address: str | None = Field(None, description="a running Dask scheduler (tcp://host:8786); null = a local "
-                                                   "cluster of `workers` processes on this machine")
+
+    executor: Literal["local", "dask"] = Field(
+        "local",
+        description=(
+            "local = in this process; dask = partitions of scenes as tasks on a Dask cluster (pilight.render.cluster)"
+        ),
+    )
+    address: str | None = Field(
+        None,
+        description="a running Dask scheduler (tcp://host:8786); null = a local "
+        "cluster of `workers` processes on this machine",
+    )
     workers: int = Field(2, ge=1, le=4096, description="processes of the local cluster (address: null)")
     scenes_per_task: int = Field(4, ge=1, description="scenes per partition: one task, one marker")
-    retries: int = Field(2, ge=0, le=100, description="reruns of a partition whose task raised (a killed worker's "
-                                                      "partition is rescheduled by Dask itself)")
+    retries: int = Field(
+        2,
+        ge=0,
+        le=100,
+        description="reruns of a partition whose task raised (a killed worker's "
+        "partition is rescheduled by Dask itself)",
+    )
 
 
 class RenderParams(_Section):
@@ -201,15 +238,30 @@ class RenderParams(_Section):
     scene: SceneParams = SceneParams()
     cluster: ClusterParams = ClusterParams()
     lambertian_ball: bool = Field(True, description="also write the pure-diffuse ball (free: same render)")
-    ball_resolution: int = Field(32, ge=16, le=MAX_RESOLUTION, description="the light ball's own size; it is a smooth probe (16x32 env map)")
-    ball_samples: int = Field(32, ge=1, le=MAX_SAMPLES, description="Cycles samples for the ball (adaptive threshold as the scene)")
-    ball_min_samples: int = Field(4, ge=0, description="adaptive sampling's minimum for the ball (0 = Cycles' automatic)")
-    assets: tuple[str, ...] = Field((), description=".glb/.gltf/.obj/.blend files placed beside or instead of procedural shapes")
+    ball_resolution: int = Field(
+        32, ge=16, le=MAX_RESOLUTION, description="the light ball's own size; it is a smooth probe (16x32 env map)"
+    )
+    ball_samples: int = Field(
+        32, ge=1, le=MAX_SAMPLES, description="Cycles samples for the ball (adaptive threshold as the scene)"
+    )
+    ball_min_samples: int = Field(
+        4, ge=0, description="adaptive sampling's minimum for the ball (0 = Cycles' automatic)"
+    )
+    assets: tuple[str, ...] = Field(
+        (), description=".glb/.gltf/.obj/.blend files placed beside or instead of procedural shapes"
+    )
     assets_only: bool = Field(False, description="true: scenes hold only the listed assets, no procedural shapes")
-    camera_backdrop: float | None = Field(None, ge=0.0, le=10.0, allow_inf_nan=False, description=(
-        "linear gray radiance that CAMERA rays see behind the scene (the lighting HDRI stays hidden from "
-        "them but still lights the scene), so the background is the same for every light of a view; "
-        "null = camera rays see the lighting world (the paper's renders)"))
+    camera_backdrop: float | None = Field(
+        None,
+        ge=0.0,
+        le=10.0,
+        allow_inf_nan=False,
+        description=(
+            "linear gray radiance that CAMERA rays see behind the scene (the lighting HDRI stays hidden from "
+            "them but still lights the scene), so the background is the same for every light of a view; "
+            "null = camera rays see the lighting world (the paper's renders)"
+        ),
+    )
 
     @field_validator("resolution")
     @classmethod
@@ -230,7 +282,7 @@ class RenderParams(_Section):
         return v
 
     @model_validator(mode="after")
-    def _assets_needed(self) -> "RenderParams":
+    def _assets_needed(self) -> RenderParams:
         if self.assets_only and not self.assets:
             raise ValueError("assets_only is true but no assets are listed")
         return self
@@ -240,12 +292,16 @@ DOMAINS = ("albedo", "normal", "roughness", "metallic")  # stage 1's outputs, in
 
 
 class CodecParams(_Section):
-    kind: Literal["pixel", "vae"] = Field("pixel", description="pixel = lossless pixel-unshuffle (no weights); vae = AutoencoderKL")
+    kind: Literal["pixel", "vae"] = Field(
+        "pixel", description="pixel = lossless pixel-unshuffle (no weights); vae = AutoencoderKL"
+    )
     factor: int = Field(4, ge=1, description="pixel codec downsampling factor")
-    path: str | None = Field(None, description="local AutoencoderKL folder (e.g. Stable Diffusion 2's vae/) for kind: vae")
+    path: str | None = Field(
+        None, description="local AutoencoderKL folder (e.g. Stable Diffusion 2's vae/) for kind: vae"
+    )
 
     @model_validator(mode="after")
-    def _path(self, info: ValidationInfo) -> "CodecParams":
+    def _path(self, info: ValidationInfo) -> CodecParams:
         if self.kind == "vae" and not self.path:
             raise ValueError("codec.kind is 'vae' but codec.path is not set (a local AutoencoderKL folder)")
         _weights_folder(self.path, "codec.path", info)
@@ -261,7 +317,7 @@ class UNetParams(_Section):
     cross_attention_dim: int = Field(128, ge=1)
 
     @model_validator(mode="after")
-    def _path(self, info: ValidationInfo) -> "UNetParams":
+    def _path(self, info: ValidationInfo) -> UNetParams:
         if self.init == "pretrained" and not self.path:
             raise ValueError("unet.init is 'pretrained' but unet.path is not set (a local UNet folder)")
         _weights_folder(self.path, "unet.path", info)
@@ -269,11 +325,13 @@ class UNetParams(_Section):
 
 
 class ConditioningParams(_Section):
-    kind: Literal["learned", "clip"] = Field("learned", description="clip = CLIP image encoder (paper); learned = a named learned embedding")
+    kind: Literal["learned", "clip"] = Field(
+        "learned", description="clip = CLIP image encoder (paper); learned = a named learned embedding"
+    )
     clip_path: str | None = None
 
     @model_validator(mode="after")
-    def _path(self, info: ValidationInfo) -> "ConditioningParams":
+    def _path(self, info: ValidationInfo) -> ConditioningParams:
         if self.kind == "clip" and not self.clip_path:
             raise ValueError("conditioning.kind is 'clip' but conditioning.clip_path is not set")
         _weights_folder(self.clip_path, "conditioning.clip_path", info)
@@ -286,15 +344,19 @@ class ScheduleParams(_Section):
     rescale_zero_snr: bool = False
     timestep_spacing: Literal["leading", "trailing", "linspace"] = "leading"
     terminal_input: Literal["noise", "zero"] = Field(
-        "noise", description="what the UNet reads as its latent at t = T-1: noise (the paper) | zero (ours, "
+        "noise",
+        description="what the UNet reads as its latent at t = T-1: noise (the paper) | zero (ours, "
         "as E2E-FT): with zero terminal SNR x_T holds nothing of x0, so its mean, 0, removes input noise "
-        "from the single-step prediction; training and every sampler see the same")
+        "from the single-step prediction; training and every sampler see the same",
+    )
 
     @model_validator(mode="after")
-    def _terminal_input(self) -> "ScheduleParams":
+    def _terminal_input(self) -> ScheduleParams:
         if self.terminal_input == "zero" and not self.rescale_zero_snr:
-            raise ValueError("schedule.terminal_input 'zero' needs schedule.rescale_zero_snr: true (without zero "
-                             "terminal SNR x_T still carries x0, and zeroing it would discard signal)")
+            raise ValueError(
+                "schedule.terminal_input 'zero' needs schedule.rescale_zero_snr: true (without zero "
+                "terminal SNR x_T still carries x0, and zeroing it would discard signal)"
+            )
         return self
 
 
@@ -304,14 +366,28 @@ class TrainParams(_Section):
     lr: float = Field(2e-4, gt=0, le=1.0)
     weight_decay: float = Field(1e-2, ge=0)
     warmup_steps: int = Field(20, ge=0)
-    lr_schedule: Literal["constant", "cosine"] = Field("constant", description="after warmup: constant, or a cosine decay to 0 at `steps`")
+    lr_schedule: Literal["constant", "cosine"] = Field(
+        "constant", description="after warmup: constant, or a cosine decay to 0 at `steps`"
+    )
     grad_accum: int = Field(1, ge=1)
-    mixed_precision: Literal["fp32", "bf16", "fp16"] = Field("fp32", description="fp32 = no mixed precision (accelerate's 'no')")
+    max_grad_norm: float | None = Field(1.0, gt=0, description="gradient-norm clip; null = no clipping")
+    mixed_precision: Literal["fp32", "bf16", "fp16"] = Field(
+        "fp32", description="fp32 = no mixed precision (accelerate's 'no')"
+    )
     cond_dropout: float = Field(0.1, ge=0.0, le=1.0, description="drop the condition so CFG works")
-    terminal_fraction: float = Field(0.0, ge=0.0, le=1.0, description="share of samples trained at t = T-1, "
-                                     "the timestep single-step inference uses (the rest uniform)")
-    ema_decay: float = Field(0.0, ge=0.0, lt=1.0, description="exponential moving average of the weights, "
-                             "saved as the model (diffusers EMAModel, warmup (1+n)/(10+n)); 0 = off")
+    terminal_fraction: float = Field(
+        0.0,
+        ge=0.0,
+        le=1.0,
+        description="share of samples trained at t = T-1, the timestep single-step inference uses (the rest uniform)",
+    )
+    ema_decay: float = Field(
+        0.0,
+        ge=0.0,
+        lt=1.0,
+        description="exponential moving average of the weights, "
+        "saved as the model (diffusers EMAModel, warmup (1+n)/(10+n)); 0 = off",
+    )
     checkpoint_every: int = Field(200, ge=1)
     keep_checkpoints: int = Field(2, ge=1)
     log_every: int = Field(10, ge=1)
@@ -340,7 +416,8 @@ class ModelParams(_Section):
 
 class IntrinsicsParams(ModelParams):
     albedo_space: Literal["linear", "srgb"] = Field(
-        "srgb", description="space the albedo is predicted in (Marigold habit): srgb spreads dark albedos over [-1, 1]")
+        "srgb", description="space the albedo is predicted in (Marigold habit): srgb spreads dark albedos over [-1, 1]"
+    )
 
 
 class RelightParams(ModelParams):
@@ -351,40 +428,62 @@ class RelightParams(ModelParams):
     lambda_ps: float = Field(1.0, ge=0.0, description="lambda_2, physical-shading loss")
     lambda_rec: float = Field(0.1, ge=0.0, description="lambda_3, reconstruction (feature) loss")
     t_min: float = Field(1.0, gt=0.0, description="floor of t in the 1/t weight")
-    lambda_image: float = Field(0.0, ge=0.0, description="ours: the formed relit image vs the target (display-space "
-                                                         "MSE) on samples at t = T-1, where single-step inference "
-                                                         "runs (E2E-FT); 0 = the paper")
-    rec_features: Literal["pooled-rgb", "dinov2"] = Field("pooled-rgb", description="dinov2 = the paper (needs dinov2_path)")
+    lambda_image: float = Field(
+        0.0,
+        ge=0.0,
+        description="ours: the formed relit image vs the target (display-space "
+        "MSE) on samples at t = T-1, where single-step inference "
+        "runs (E2E-FT); 0 = the paper",
+    )
+    rec_features: Literal["pooled-rgb", "dinov2"] = Field(
+        "pooled-rgb", description="dinov2 = the paper (needs dinov2_path)"
+    )
     dinov2_path: str | None = None
     conditions: Literal["gt", "pred", "mix"] = Field("mix", description="intrinsics given to the model while training")
-    pred_probability: float = Field(0.5, ge=0.0, le=1.0, description="share of stage-1 predictions when conditions: mix")
+    pred_probability: float = Field(
+        0.5, ge=0.0, le=1.0, description="share of stage-1 predictions when conditions: mix"
+    )
     ds_ball: Literal["gray", "lambertian"] = Field("gray", description="ball unfolded for D_calculated (paper: gray)")
     relit_target: Literal["image", "residual", "gain"] = Field(
-        "image", description="image = the paper's relit branch; residual = its latent minus the input's latent; "
-                             "gain = the log ratio of relit to input display values (both: 'copy the input' is "
-                             "the zero prediction)")
+        "image",
+        description="image = the paper's relit branch; residual = its latent minus the input's latent; "
+        "gain = the log ratio of relit to input display values (both: 'copy the input' is "
+        "the zero prediction)",
+    )
     relit_resolution: Literal["full", "cell"] = Field(
-        "full", description="full = a value per pixel (the paper); cell = the relit branch's change is one value "
-                            "per codec cell, bilinearly interpolated (smooth by construction; needs residual or gain)")
+        "full",
+        description="full = a value per pixel (the paper); cell = the relit branch's change is one value "
+        "per codec cell, bilinearly interpolated (smooth by construction; needs residual or gain)",
+    )
     physics_first: bool = Field(
-        False, description="true = on the mask I_relit = A_x D_pred + S_pred, D and S predicted as gains on their "
-                           "physics lookups D_calc and S_calc (pilight.relight.physics_first); false = the paper's "
-                           "free relit branch")
+        False,
+        description="true = on the mask I_relit = A_x D_pred + S_pred, D and S predicted as gains on their "
+        "physics lookups D_calc and S_calc (pilight.relight.physics_first); false = the paper's "
+        "free relit branch",
+    )
     albedo_source: Literal["effective", "conditioning"] = Field(
-        "effective", description="A_x of physics_first: effective = the albedo that explains the input under its own "
-                                 "light (the ratio form; cancels stage-1 albedo errors); conditioning = the "
-                                 "conditioning albedo")
+        "effective",
+        description="A_x of physics_first: effective = the albedo that explains the input under its own "
+        "light (the ratio form; cancels stage-1 albedo errors); conditioning = the "
+        "conditioning albedo",
+    )
     source_light: Literal["estimated", "rendered"] = Field(
-        "estimated", description="the input's own light for albedo_source effective: estimated = fitted to the input "
-                                 "(pilight.physics.source_light; what a photo gets); rendered = the shards' ball of "
-                                 "the input light")
+        "estimated",
+        description="the input's own light for albedo_source effective: estimated = fitted to the input "
+        "(pilight.physics.source_light; what a photo gets); rendered = the shards' ball of "
+        "the input light",
+    )
     specular_anchor: Literal["lookup", "ggx"] = Field(
-        "lookup", description="S_calc of physics_first: lookup = the gray ball minus its Lambertian twin read at the "
-                              "normal (knows no roughness); ggx = a microfacet highlight of the ball's dominant light "
-                              "with the conditioning roughness and Fresnel (pilight.physics.specular_model)")
+        "lookup",
+        description="S_calc of physics_first: lookup = the gray ball minus its Lambertian twin read at the "
+        "normal (knows no roughness); ggx = a microfacet highlight of the ball's dominant light "
+        "with the conditioning roughness and Fresnel (pilight.physics.specular_model)",
+    )
     d_calc_condition: tuple[Literal["relit", "diffuse", "specular"], ...] = Field(
-        (), description="branches that also get D_calc (Lambertian lookup of the target ball with the conditioning "
-                        "normals) as a condition map; () = the paper")
+        (),
+        description="branches that also get D_calc (Lambertian lookup of the target ball with the conditioning "
+        "normals) as a condition map; () = the paper",
+    )
 
     @field_validator("d_calc_condition")
     @classmethod
@@ -394,14 +493,18 @@ class RelightParams(ModelParams):
         return v
 
     @model_validator(mode="after")
-    def _dinov2(self, info: ValidationInfo) -> "RelightParams":
+    def _dinov2(self, info: ValidationInfo) -> RelightParams:
         if self.relit_resolution == "cell" and self.relit_target == "image":
-            raise ValueError("relit_resolution 'cell' smooths the relit branch's CHANGE of the input, so it needs "
-                             "relit_target 'residual' or 'gain', not 'image'")
+            raise ValueError(
+                "relit_resolution 'cell' smooths the relit branch's CHANGE of the input, so it needs "
+                "relit_target 'residual' or 'gain', not 'image'"
+            )
         if self.physics_first and (not self.decomposition or self.relit_target != "gain"):
-            raise ValueError("physics_first forms the relit image from the diffuse and specular branches and uses the "
-                             "relit branch as a gain off the mask, so it needs decomposition: true and relit_target: "
-                             f"gain (got decomposition: {self.decomposition}, relit_target: {self.relit_target!r})")
+            raise ValueError(
+                "physics_first forms the relit image from the diffuse and specular branches and uses the "
+                "relit branch as a gain off the mask, so it needs decomposition: true and relit_target: "
+                f"gain (got decomposition: {self.decomposition}, relit_target: {self.relit_target!r})"
+            )
         if self.rec_features == "dinov2" and not self.dinov2_path:
             raise ValueError("rec_features is 'dinov2' but dinov2_path is not set (a local DINOv2 folder)")
         _weights_folder(self.dinov2_path, "dinov2_path", info)
@@ -445,7 +548,9 @@ class TradeParams(_Section):
     relight_cfg: tuple[float, ...] = (1.0, 1.5, 2.0)
     ensemble: tuple[int, ...] = (1, 2, 4)
     render_spp: tuple[int, ...] = Field((4, 16, 64, 256), description="render side: samples per pixel")
-    render_reference_spp: int = Field(1024, ge=1, description="the noise-free reference the spp points are compared with")
+    render_reference_spp: int = Field(
+        1024, ge=1, description="the noise-free reference the spp points are compared with"
+    )
 
     @field_validator("steps", "ensemble", "render_spp")
     @classmethod
@@ -464,9 +569,13 @@ class TradeParams(_Section):
 
 class EvaluateParams(_Section):
     lpips_net: Literal["alex", "vgg", "squeeze"] = "alex"
-    lpips_backbone: str | None = Field(None, description="local safetensors of the LPIPS backbone; null = LPIPS reported as null with the reason")
+    lpips_backbone: str | None = Field(
+        None, description="local safetensors of the LPIPS backbone; null = LPIPS reported as null with the reason"
+    )
     grid_images: int = Field(4, ge=1, description="test images (pairs) in the intrinsics (relight) grid of reports/")
-    relight_lights: int = Field(6, ge=1, description="analytic lights around one test image in the relit-under-several-lights grid")
+    relight_lights: int = Field(
+        6, ge=1, description="analytic lights around one test image in the relit-under-several-lights grid"
+    )
     trade: TradeParams = TradeParams()
 
     @field_validator("lpips_backbone")
@@ -480,9 +589,14 @@ class EvaluateParams(_Section):
 from pilight.data.shard_params import ShardParams  # noqa: E402  (the shard stage's own module)
 
 SECTIONS: dict[str, type[BaseModel]] = {
-    "base": BaseParams, "render": RenderParams, "shard": ShardParams,
-    "intrinsics": IntrinsicsParams, "infer_intrinsics": InferIntrinsicsParams,
-    "relight": RelightParams, "relight_infer": RelightInferParams, "evaluate": EvaluateParams,
+    "base": BaseParams,
+    "render": RenderParams,
+    "shard": ShardParams,
+    "intrinsics": IntrinsicsParams,
+    "infer_intrinsics": InferIntrinsicsParams,
+    "relight": RelightParams,
+    "relight_infer": RelightInferParams,
+    "evaluate": EvaluateParams,
 }
 
 
@@ -504,8 +618,11 @@ class UniqueKeyLoader(yaml.SafeLoader):
             key = self.construct_object(key_node, deep=deep)
             if key in seen:
                 raise yaml.constructor.ConstructorError(
-                    "while constructing a mapping", node.start_mark,
-                    f"found duplicate key {key!r} (first on line {seen[key] + 1})", key_node.start_mark)
+                    "while constructing a mapping",
+                    node.start_mark,
+                    f"found duplicate key {key!r} (first on line {seen[key] + 1})",
+                    key_node.start_mark,
+                )
             seen[key] = key_node.start_mark.line
         return super().construct_mapping(node, deep=deep)
 
@@ -527,8 +644,9 @@ def read_params(path: str | Path) -> dict:
     return raw
 
 
-def load_section(name: str, path: str | Path = "params.yaml", cls: type[BaseModel] | None = None, *,
-                 check_paths: bool = True):
+def load_section(
+    name: str, path: str | Path = "params.yaml", cls: type[BaseModel] | None = None, *, check_paths: bool = True
+):
     """Read one section of params.yaml and validate it; raise ParamsError naming key and value.
     ``check_paths=False`` skips the weight folders' existence checks (their values are still validated)."""
     path = Path(path)
@@ -547,5 +665,6 @@ def _validate(model: type[BaseModel], name: str, raw, where: str | Path, check_p
 
 def validate_sections(raw: dict, where: str | Path, *, check_paths: bool = True) -> dict[str, BaseModel]:
     """Every known section of a whole params mapping, validated; ParamsError naming ``where`` and the key."""
-    return {name: _validate(model, name, raw[name], where, check_paths) for name, model in SECTIONS.items() if name in raw}
-
+    return {
+        name: _validate(model, name, raw[name], where, check_paths) for name, model in SECTIONS.items() if name in raw
+    }

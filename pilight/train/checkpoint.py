@@ -29,6 +29,13 @@ catches flipped bytes in the weights (resumed silently before: exit 0, final los
 and falling back to an older one (or to step 0) is said in so many words.  Weights holding NaN or
 Inf are never written (:class:`NonFiniteError`): a diverged run must not replace the last good
 checkpoint.
+
+Sharded runs (FSDP) write the same files: :func:`gather_sharded` gathers full CPU copies of the
+weights, the AdamW state and the EMA onto the main process, which writes them as above; the
+optimizer state keeps the parameter-index keys of ``Optimizer.state_dict()``.  On resume every
+process reads the full tensors and keeps its own shard (:func:`load_checkpoint` sees a sharded
+model).  So a checkpoint does not record how the run was sharded, and an FSDP run resumes from a
+DDP run's checkpoint and back (the RNG streams need the same process count).
 """
 
 from __future__ import annotations
@@ -143,8 +150,9 @@ def find_resume(checkpoint_dir: Path, max_step: int | None = None) -> tuple[Path
     d = Path(checkpoint_dir)
     if not d.is_dir():
         return None, []
-    found = sorted(((int(m.group(1)), p) for p in d.iterdir() if (m := _NAME.match(p.name)) and p.is_dir()),
-                   reverse=True)
+    found = sorted(
+        ((int(m.group(1)), p) for p in d.iterdir() if (m := _NAME.match(p.name)) and p.is_dir()), reverse=True
+    )
     damaged: list[Path] = []
     notes: list[str] = []
     for step, p in found:
@@ -153,8 +161,9 @@ def find_resume(checkpoint_dir: Path, max_step: int | None = None) -> tuple[Path
         problem = damage(p)
         if problem is None:
             if damaged:
-                notes.append(f"resuming from the previous checkpoint {p} instead of the damaged newest one "
-                             f"{damaged[0]}")
+                notes.append(
+                    f"resuming from the previous checkpoint {p} instead of the damaged newest one {damaged[0]}"
+                )
             return p, notes
         damaged.append(p)
         notes.append(f"{p}: damaged checkpoint, not resumed: {problem}")
@@ -234,11 +243,15 @@ def _read_run_file(run_file: Path) -> dict[str, Any]:
     try:
         old = json.loads(run_file.read_text(encoding="utf-8"))
     except (OSError, ValueError) as exc:
-        raise CheckpointError(f"{run_file}: unreadable ({exc}); it records which run the checkpoints next to it "
-                              f"belong to. Restore it, or delete {run_file.parent} to train from step 0") from None
+        raise CheckpointError(
+            f"{run_file}: unreadable ({exc}); it records which run the checkpoints next to it "
+            f"belong to. Restore it, or delete {run_file.parent} to train from step 0"
+        ) from None
     if not isinstance(old, dict):
-        raise CheckpointError(f"{run_file}: want a JSON object, got {type(old).__name__}; restore it, or delete "
-                              f"{run_file.parent} to train from step 0")
+        raise CheckpointError(
+            f"{run_file}: want a JSON object, got {type(old).__name__}; restore it, or delete "
+            f"{run_file.parent} to train from step 0"
+        )
     return old
 
 
@@ -258,6 +271,92 @@ def _fsync(path: Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def is_sharded(model: torch.nn.Module) -> bool:
+    """True for a module sharded by FSDP (torch's ``fully_shard``, or the FSDP1 wrapper)."""
+    from torch.distributed.fsdp import FSDPModule, FullyShardedDataParallel
+
+    return any(isinstance(m, (FSDPModule, FullyShardedDataParallel)) for m in model.modules())
+
+
+def _full(t: torch.Tensor) -> torch.Tensor:
+    """The whole tensor of a DTensor shard (a collective: every process calls it), else ``t``."""
+    from torch.distributed.tensor import DTensor
+
+    return t.full_tensor() if isinstance(t, DTensor) else t
+
+
+def _shard_like(full: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """``full`` placed like ``ref``: this process's shard of it when ``ref`` is a DTensor."""
+    from torch.distributed.tensor import DTensor, distribute_tensor
+
+    if isinstance(ref, DTensor):  # every process holds the full tensor: src_data_rank=None slices it locally
+        return distribute_tensor(full.to(ref.device), ref.device_mesh, ref.placements, src_data_rank=None)
+    return full.to(ref.device)
+
+
+def _by_index(osd: dict[str, Any]) -> dict[str, Any]:
+    """torch.distributed.checkpoint keys optimizer state by parameter name, ``Optimizer.state_dict()`` by
+    the parameter's position over the param groups; the files keep the position."""
+    index = {name: i for i, name in enumerate(n for g in osd["param_groups"] for n in g["params"])}
+    return {
+        "state": {index[n]: entry for n, entry in osd["state"].items()},
+        "param_groups": [{**g, "params": [index[n] for n in g["params"]]} for g in osd["param_groups"]],
+    }
+
+
+def _by_name(sd: dict[str, Any], names: list[str]) -> dict[str, Any]:
+    n_saved = sum(len(g["params"]) for g in sd["param_groups"])
+    if n_saved != len(names):
+        raise CheckpointError(
+            f"the checkpoint holds optimizer state for {n_saved} parameters, the model trains {len(names)}"
+        )
+    return {
+        "state": {names[int(i)]: entry for i, entry in sd["state"].items()},
+        "param_groups": [{**g, "params": [names[i] for i in g["params"]]} for g in sd["param_groups"]],
+    }
+
+
+def gather_sharded(
+    model: torch.nn.Module, optimizer: torch.optim.Optimizer, ema: Any = None
+) -> tuple[dict[str, torch.Tensor], dict[str, Any], dict[str, Any] | None]:
+    """(weights, optimizer state, EMA state) of a sharded run as full CPU tensors, for :func:`save_checkpoint`.
+
+    A collective: every process calls it.  The main process receives the tensors, the others empty
+    dicts (``cpu_offload``: no process but the writer ever holds a full copy).  ``optimizer`` is the
+    torch optimizer itself, not accelerate's wrapper."""
+    from torch.distributed.checkpoint.state_dict import StateDictOptions, get_state_dict
+
+    weights, optim = get_state_dict(model, optimizer, options=StateDictOptions(full_state_dict=True, cpu_offload=True))
+    ema_state = None
+    if ema is not None:
+        shadow = []
+        for t in ema.shadow_params:
+            whole = _full(t)  # a collective: every process gathers, the main one keeps
+            if weights:
+                shadow.append(whole.cpu())
+        ema_state = {**ema.state_dict(), "shadow_params": shadow} if weights else None
+    return weights, (_by_index(optim) if optim else {}), ema_state
+
+
+def _load_sharded(path: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer) -> None:
+    """Every process reads the full tensors and keeps its shard of them (no process waits on another)."""
+    from torch.distributed.checkpoint.state_dict import StateDictOptions, get_optimizer_state_dict, set_state_dict
+
+    with safe_open(str(path / OPTIMIZER_FILE), framework="pt") as fh:
+        opt_meta = fh.metadata()
+    saved = _unflatten_optimizer(load_file(str(path / OPTIMIZER_FILE)), opt_meta)
+    # The parameter names in the optimizer's order, from this process's own (sharded) state: no gather.
+    local = get_optimizer_state_dict(model, optimizer, options=StateDictOptions())
+    names = [n for g in local["param_groups"] for n in g["params"]]
+    set_state_dict(
+        model,
+        optimizer,
+        model_state_dict=load_file(str(path / MODEL_FILE)),
+        optim_state_dict=_by_name(saved, names),
+        options=StateDictOptions(full_state_dict=True),
+    )
 
 
 def _flatten_optimizer(sd: dict[str, Any]) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
@@ -287,30 +386,38 @@ def save_checkpoint(
     checkpoint_dir: Path,
     step: int,
     *,
-    model: torch.nn.Module,
-    optimizer: torch.optim.Optimizer,
+    model: torch.nn.Module | dict[str, torch.Tensor],
+    optimizer: torch.optim.Optimizer | dict[str, Any],
     scheduler: Any,
     rng: dict[str, torch.Tensor],
     progress: dict[str, Any],
     keep: int,
     ema: Any = None,
 ) -> Path:
-    """Write ``step_<step>`` atomically, then prune to the newest ``keep`` checkpoints."""
+    """Write ``step_<step>`` atomically, then prune to the newest ``keep`` checkpoints.
+
+    ``model``, ``optimizer`` and ``ema`` are the objects, or (a sharded run) their full state dicts
+    from :func:`gather_sharded`."""
     d = Path(checkpoint_dir)
-    bad = non_finite_tensors(model.state_dict())
+    bad = non_finite_tensors(model if isinstance(model, dict) else model.state_dict())
     if ema is not None:
-        bad += [f"ema {k}" for k in non_finite_tensors({str(i): t for i, t in enumerate(ema.shadow_params)})]
+        bad += [f"ema {k}" for k in non_finite_tensors({str(i): t for i, t in enumerate(_shadow(ema))})]
     if bad:
-        raise NonFiniteError(f"step {step}: weights hold NaN/Inf ({', '.join(bad[:3])}{', ...' if len(bad) > 3 else ''}); "
-                             f"not checkpointed, so {d} keeps its last good checkpoint (lower the lr?)")
+        raise NonFiniteError(
+            f"step {step}: weights hold NaN/Inf ({', '.join(bad[:3])}{', ...' if len(bad) > 3 else ''}); "
+            f"not checkpointed, so {d} keeps its last good checkpoint (lower the lr?)"
+        )
     final = checkpoint_path(d, step)
     tmp = d / f"{TMP_PREFIX}{final.name}-{os.getpid()}"
     try:
         d.mkdir(parents=True, exist_ok=True)
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir()
-        save_model(model, str(tmp / MODEL_FILE))
-        opt_tensors, opt_meta = _flatten_optimizer(optimizer.state_dict())
+        if isinstance(model, dict):  # gathered full tensors: separate copies, nothing tied to deduplicate
+            save_file({k: v.contiguous() for k, v in model.items()}, str(tmp / MODEL_FILE))
+        else:
+            save_model(model, str(tmp / MODEL_FILE))
+        opt_tensors, opt_meta = _flatten_optimizer(optimizer if isinstance(optimizer, dict) else optimizer.state_dict())
         save_file(opt_tensors, str(tmp / OPTIMIZER_FILE), metadata=opt_meta)
         meta = {"progress": json.dumps({**progress, "step": step}), "scheduler": json.dumps(scheduler.state_dict())}
         save_file({k: v.to("cpu").contiguous() for k, v in rng.items()}, str(tmp / STATE_FILE), metadata=meta)
@@ -349,14 +456,20 @@ def load_checkpoint(
     scheduler: Any,
     ema: Any = None,
 ) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
-    """Restore model/optimizer/scheduler (and the EMA, if given) in place; return (progress dict, RNG tensors)."""
+    """Restore model/optimizer/scheduler (and the EMA, if given) in place; return (progress dict, RNG tensors).
+
+    A sharded ``model`` (FSDP; ``optimizer`` then the torch optimizer itself): every process must call
+    this, and each keeps its shard of the full tensors."""
     path = Path(path)
     try:
-        # strict: a checkpoint from a different architecture must fail loudly, not half-load.
-        load_model(model, str(path / MODEL_FILE), strict=True)
-        with safe_open(str(path / OPTIMIZER_FILE), framework="pt") as fh:
-            opt_meta = fh.metadata()
-        optimizer.load_state_dict(_unflatten_optimizer(load_file(str(path / OPTIMIZER_FILE)), opt_meta))
+        if is_sharded(model):
+            _load_sharded(path, model, optimizer)  # strict too
+        else:
+            # strict: a checkpoint from a different architecture must fail loudly, not half-load.
+            load_model(model, str(path / MODEL_FILE), strict=True)
+            with safe_open(str(path / OPTIMIZER_FILE), framework="pt") as fh:
+                opt_meta = fh.metadata()
+            optimizer.load_state_dict(_unflatten_optimizer(load_file(str(path / OPTIMIZER_FILE)), opt_meta))
         with safe_open(str(path / STATE_FILE), framework="pt") as fh:
             meta = fh.metadata()
         scheduler.load_state_dict(json.loads(meta["scheduler"]))
@@ -366,26 +479,40 @@ def load_checkpoint(
     except (OSError, CheckpointError):
         raise
     except Exception as exc:  # noqa: BLE001 - strict-load RuntimeError, SafetensorError, bad JSON metadata, ...
-        raise CheckpointError(f"{path}: cannot resume from this checkpoint ({type(exc).__name__}: {exc}); "
-                              f"delete it to fall back to an older one, or {path.parent} to train from step 0") from exc
+        raise CheckpointError(
+            f"{path}: cannot resume from this checkpoint ({type(exc).__name__}: {exc}); "
+            f"delete it to fall back to an older one, or {path.parent} to train from step 0"
+        ) from exc
+
+
+def _shadow(ema: Any) -> list[torch.Tensor]:
+    return ema["shadow_params"] if isinstance(ema, dict) else ema.shadow_params
 
 
 def _save_ema(ema: Any, path: Path) -> None:
-    """A diffusers EMAModel's state: tensors by index, scalar counters as JSON (no pickle)."""
-    state = dict(ema.state_dict())
+    """A diffusers EMAModel's state (or that state, gathered): tensors by index, scalar counters as JSON (no pickle)."""
+    state = dict(ema if isinstance(ema, dict) else ema.state_dict())
     shadow = state.pop("shadow_params")
-    save_file({f"shadow.{i:05d}": t.detach().to("cpu").contiguous() for i, t in enumerate(shadow)}, str(path),
-              metadata={"ema": json.dumps(state)})
+    save_file(
+        {f"shadow.{i:05d}": t.detach().to("cpu").contiguous() for i, t in enumerate(shadow)},
+        str(path),
+        metadata={"ema": json.dumps(state)},
+    )
 
 
 def _load_ema(ema: Any, path: Path) -> None:
     if not path.is_file():
-        raise FileNotFoundError(f"{path.parent}: this run keeps an EMA of its weights but the checkpoint has no "
-                                f"{EMA_FILE}")
+        raise FileNotFoundError(
+            f"{path.parent}: this run keeps an EMA of its weights but the checkpoint has no {EMA_FILE}"
+        )
     with safe_open(str(path), framework="pt") as fh:
         state = json.loads(fh.metadata()["ema"])
     tensors = load_file(str(path))
     if len(tensors) != len(ema.shadow_params):
         raise CheckpointError(f"{path}: {len(tensors)} EMA tensors for {len(ema.shadow_params)} trainable parameters")
-    device = ema.shadow_params[0].device
-    ema.load_state_dict({**state, "shadow_params": [tensors[f"shadow.{i:05d}"].to(device) for i in range(len(tensors))]})
+    ema.load_state_dict(
+        {
+            **state,
+            "shadow_params": [_shard_like(tensors[f"shadow.{i:05d}"], ref) for i, ref in enumerate(ema.shadow_params)],
+        }
+    )

@@ -5,16 +5,18 @@ A stage script builds a :class:`Task` and calls :func:`train`.  The same script 
 * on one process (CPU, or one GPU):   ``python stages/train_intrinsics.py``
 * data-parallel on 2 CPU processes:   ``OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 stages/train_intrinsics.py``
 * data-parallel on 8 GPUs:            ``accelerate launch --multi_gpu --num_processes 8 stages/train_intrinsics.py``
-* DeepSpeed ZeRO-2 (the paper's; not run here: it needs GPUs and the deepspeed package):
-  ``accelerate launch --use_deepspeed --zero_stage 2 --num_processes 8 stages/train_intrinsics.py``
+* sharded, ZeRO-2's split (gradients and AdamW state sharded; FSDP2), on GPUs or CPU processes:
+  ``accelerate launch --config_file profiles/accelerate_fsdp.yaml [--num_processes 2] stages/train_intrinsics.py``
+* DeepSpeed ZeRO-2 (the paper's, profiles/accelerate_deepspeed_zero2.yaml) is refused with the reason,
+  see :func:`pilight.train.sharding.sharding_requested`.
 
 ``train.batch_size`` is per process: N processes train on N x batch_size samples per step.
 
 ``accelerate`` handles device placement, autocast (``mixed_precision``), gradient accumulation,
 fp16 loss scaling, the process group and the data-parallel wrapper: the trainable module goes
-through ``accelerator.prepare`` for every distributed type (plain on one process, DDP under
-several, the DeepSpeed engine under DeepSpeed), and the loop hands the prepared model to
-``task.loss``, which must call it (not its own module) for the forward pass with gradients. The
+through ``accelerator.prepare`` (plain on one process, DDP under several), and the loop hands the
+prepared model to ``task.loss``, which must call it (not its own module) for the forward pass with
+gradients. The
 model's forward embeds the condition itself, so every trainable parameter is used inside the
 wrapped forward and DDP averages every gradient.  DDP's constructor broadcasts rank 0's weights.
 Under several processes ``Task.batches`` returns this process's shard (webdataset
@@ -30,6 +32,13 @@ shared ``checkpoint_dir`` and the same process count (else the RNG streams resta
 Under ``dvc repro`` the checkpoint folder must be a ``persist: true`` output, or DVC deletes it
 before the stage starts.  Checkpoints are safetensors only, see :mod:`pilight.train.checkpoint`.
 
+Sharded (FSDP, see :mod:`pilight.train.sharding`): a sharded copy of ``task.trainable()`` trains and
+is what ``task.loss`` gets; the module itself is emptied meanwhile and receives the whole weights
+for previews (main process) and at the end (every process), so ``task.images`` and the caller's
+save see plain tensors.  Checkpoints are gathered to full tensors and written by the main process
+in the same format; on resume every process loads them and keeps its shard.  A request that cannot
+be met (FSDP in a single unlaunched process, DeepSpeed) is an error, never a silent DDP run.
+
 Optional Task hook: if the task has ``to(device)``, it is called first so frozen parts (VAE, text
 encoder) follow the trainable module onto the accelerator's device.
 """
@@ -39,9 +48,9 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from dataclasses import dataclass
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, Iterable, Protocol
+from typing import Any, Protocol
 
 import numpy
 import torch
@@ -49,48 +58,9 @@ from accelerate import Accelerator
 from accelerate.utils import send_to_device
 from tqdm.auto import tqdm
 
+from pilight.params import TrainParams
 from pilight.train import checkpoint as ckpt
-
-
-@dataclass
-class LoopConfig:
-    steps: int                 # optimizer steps (iterations)
-    lr: float = 1e-4
-    weight_decay: float = 1e-2
-    warmup_steps: int = 0      # linear warmup, then lr_schedule
-    lr_schedule: str = "constant"  # "constant" (diffusers "constant_with_warmup") | "cosine" (to 0 at steps)
-    grad_accum: int = 1
-    max_grad_norm: float | None = 1.0
-    mixed_precision: str = "no"   # "no" | "bf16" | "fp16"; fp16 on CPU falls back to fp32
-    checkpoint_every: int = 100
-    keep_checkpoints: int = 2  # retention limit
-    log_every: int = 10
-    image_every: int = 100     # qualitative grid to dvclive
-    seed: int = 0
-    ema_decay: float = 0.0     # > 0: the trained module ends holding an EMA of its weights
-
-    def __post_init__(self) -> None:
-        for name in ("grad_accum", "checkpoint_every", "keep_checkpoints", "log_every", "image_every"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"LoopConfig.{name} must be >= 1, got {getattr(self, name)}")
-        if self.steps < 0 or self.warmup_steps < 0:
-            raise ValueError("LoopConfig.steps and warmup_steps must be >= 0")
-        if not 0.0 <= self.ema_decay < 1.0:
-            raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
-        if self.lr_schedule not in ("constant", "cosine"):
-            raise ValueError(f"lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}")
-        if self.mixed_precision not in ("no", "bf16", "fp16"):
-            raise ValueError(f"mixed_precision must be 'no', 'bf16' or 'fp16', got {self.mixed_precision!r}")
-
-
-def loop_config(t: Any, seed: int) -> LoopConfig:
-    """The loop's settings from a stage's ``train`` params section (pilight.params.TrainParams)."""
-    return LoopConfig(steps=t.steps, lr=t.lr, weight_decay=t.weight_decay, warmup_steps=t.warmup_steps,
-                      lr_schedule=t.lr_schedule, grad_accum=t.grad_accum,
-                      mixed_precision="no" if t.mixed_precision == "fp32" else t.mixed_precision,
-                      checkpoint_every=t.checkpoint_every,
-                      keep_checkpoints=t.keep_checkpoints, log_every=t.log_every, image_every=t.image_every, seed=seed,
-                      ema_decay=t.ema_decay)
+from pilight.train import sharding
 
 
 class Task(Protocol):
@@ -99,11 +69,15 @@ class Task(Protocol):
     def trainable(self) -> torch.nn.Module: ...
     def batches(self, epoch: int) -> Iterable[Any]: ...  # deterministic, this process's shard
     # model: the prepared module (a DDP wrapper under several processes); the forward with gradients calls it
-    def loss(self, batch: Any, generator: torch.Generator, model: torch.nn.Module) -> tuple[torch.Tensor, dict[str, float]]: ...
+    def loss(
+        self, batch: Any, generator: torch.Generator, model: torch.nn.Module
+    ) -> tuple[torch.Tensor, dict[str, float]]: ...
     def images(self, batch: Any) -> dict[str, numpy.ndarray]: ...  # must not draw from the global RNG it relies on
 
 
-def _lr_schedule(optimizer: torch.optim.Optimizer, name: str, warmup: int, total: int) -> torch.optim.lr_scheduler.LambdaLR:
+def _lr_schedule(
+    optimizer: torch.optim.Optimizer, name: str, warmup: int, total: int
+) -> torch.optim.lr_scheduler.LambdaLR:
     """diffusers' "constant_with_warmup" or "cosine" (warmup, then a half cosine to 0 at `total`).
 
     Cosine is stage 2's embedded default: a run of a few hundred steps that ends at a constant lr
@@ -112,8 +86,50 @@ def _lr_schedule(optimizer: torch.optim.Optimizer, name: str, warmup: int, total
     decay from the lr that the longer curve has at the resumed step."""
     from diffusers.optimization import get_scheduler
 
-    return get_scheduler("constant_with_warmup" if name == "constant" else name, optimizer,
-                         num_warmup_steps=warmup, num_training_steps=total)
+    return get_scheduler(
+        "constant_with_warmup" if name == "constant" else name,
+        optimizer,
+        num_warmup_steps=warmup,
+        num_training_steps=total,
+    )
+
+
+def _trainable(module: torch.nn.Module) -> list[torch.nn.Parameter]:
+    params = [p for p in module.parameters() if p.requires_grad]
+    if not params:
+        raise ValueError("task.trainable() has no parameters with requires_grad=True")
+    return params
+
+
+def _optimizer(params: list[torch.nn.Parameter], cfg: TrainParams, acc: Accelerator):
+    optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    # accelerate steps a prepared scheduler num_processes times per optimizer step, hence the factor.
+    scheduler = _lr_schedule(
+        optimizer, cfg.lr_schedule, cfg.warmup_steps * acc.num_processes, cfg.steps * acc.num_processes
+    )
+    return optimizer, scheduler
+
+
+def prepare_training(acc: Accelerator, task: Task, cfg: TrainParams):
+    """What :func:`train` trains, also for benchmarks: (module, model, optimizer, scheduler, params, sharded).
+
+    ``module`` is ``task.trainable()`` on the device; ``model`` what ``task.loss`` gets; ``params`` the
+    trainable tensors that AdamW, clipping, the finiteness check and the EMA see (shards when sharded)."""
+    sharded = sharding.sharding_requested(acc)
+    if hasattr(task, "to"):
+        task.to(acc.device)
+    module = task.trainable().to(acc.device)
+    if sharded:
+        model, optimizer, scheduler = sharding.prepare_sharded(
+            acc, module, lambda m: _optimizer(_trainable(m), cfg, acc)
+        )
+        return module, model, optimizer, scheduler, _trainable(model), True
+    params = _trainable(module)
+    optimizer, scheduler = _optimizer(params, cfg, acc)
+    # One process: the module itself. Several: DDP (its constructor broadcasts rank 0's weights).
+    # task.loss calls this prepared model, so the wrapper's hooks see the forward.
+    model, optimizer, scheduler = acc.prepare(module, optimizer, scheduler)
+    return module, model, optimizer, scheduler, params, False
 
 
 def _rng_tensors(acc: Accelerator, generator: torch.Generator) -> dict[str, torch.Tensor]:
@@ -131,7 +147,9 @@ def _rng_tensors(acc: Accelerator, generator: torch.Generator) -> dict[str, torc
 def _restore_rng(acc: Accelerator, generator: torch.Generator, rng: dict[str, torch.Tensor]) -> None:
     r = acc.process_index
     if f"rank{r}.generator" not in rng:
-        warnings.warn(f"checkpoint has no RNG state for process {r} (process count changed?); resume is not exact")
+        warnings.warn(
+            f"checkpoint has no RNG state for process {r} (process count changed?); resume is not exact", stacklevel=2
+        )
         return
     generator.set_state(rng[f"rank{r}.generator"])
     torch.set_rng_state(rng[f"rank{r}.torch_cpu"])
@@ -147,19 +165,31 @@ def _all_have_batch(acc: Accelerator, have: bool) -> bool:
     return bool(acc.reduce(flag, "sum").item() == acc.num_processes)
 
 
-def _check_finite_before_saving(acc: Accelerator, win_loss: torch.Tensor, win_n: int,
-                                params: list[torch.nn.Parameter], ema: Any, step: int) -> None:
+def _check_finite_before_saving(
+    acc: Accelerator,
+    win_loss: torch.Tensor,
+    win_n: int,
+    params: list[torch.nn.Parameter],
+    ema: Any,
+    step: int,
+    sharded: bool = False,
+) -> None:
     """NonFiniteError if the loss of the steps since the last log, or the weights (raw or EMA), hold NaN/Inf."""
     if win_n:
         pending = acc.reduce(win_loss / win_n, "mean").item()
         if not math.isfinite(pending):
             raise ckpt.NonFiniteError(f"non-finite loss {pending} at step {step}; not checkpointed")
-    bad = ckpt.non_finite_tensors({str(i): p.detach() for i, p in enumerate(params)})
+    bad = ckpt.non_finite_tensors({str(i): sharding.local(p.detach()) for i, p in enumerate(params)})
     if ema is not None:
-        bad += [f"ema {k}" for k in ckpt.non_finite_tensors({str(i): t for i, t in enumerate(ema.shadow_params)})]
+        shadow = {str(i): sharding.local(t) for i, t in enumerate(ema.shadow_params)}
+        bad += [f"ema {k}" for k in ckpt.non_finite_tensors(shadow)]
+    if sharded:  # each process sees only its own shards, and all of them must stop together
+        if acc.reduce(torch.tensor([float(bool(bad))], device=acc.device), "sum").item() and not bad:
+            bad = ["held by another process's shard"]
     if bad:
-        raise ckpt.NonFiniteError(f"weights hold NaN/Inf after step {step} (trainable tensor(s) {bad[:3]}); "
-                                  "not checkpointed (lower the lr?)")
+        raise ckpt.NonFiniteError(
+            f"weights hold NaN/Inf after step {step} (trainable tensor(s) {bad[:3]}); not checkpointed (lower the lr?)"
+        )
 
 
 def _truncate_history(metrics_dir: Path, step: int) -> None:
@@ -184,40 +214,39 @@ def _open_live(live_dir: Path, resumed_from: int | None):
     return live
 
 
-def train(task: Task, cfg: LoopConfig, checkpoint_dir: Path, live_dir: Path | None, *, progress: bool = True,
-          identity: dict | None = None) -> dict:
+def train(
+    task: Task,
+    cfg: TrainParams,
+    checkpoint_dir: Path,
+    live_dir: Path | None,
+    *,
+    seed: int = 0,
+    progress: bool = True,
+    identity: dict | None = None,
+) -> dict:
     """Train ``task`` for ``cfg.steps`` optimizer steps, resuming from ``checkpoint_dir`` when it can.
+
+    ``cfg`` is the stage's ``train`` params section itself (pilight.params.TrainParams, validated
+    there); ``seed`` is ``base.seed``: process k draws from a generator seeded ``seed + k``.
 
     ``identity`` (JSON-able: the params that shape the weights and a data hash) ties the
     checkpoints to one run, see :func:`pilight.train.checkpoint.claim_run`; without it any
     checkpoint in the folder is trusted."""
     checkpoint_dir = Path(checkpoint_dir)
     cuda = torch.cuda.is_available()
-    mixed = cfg.mixed_precision
+    mixed = "no" if cfg.mixed_precision == "fp32" else cfg.mixed_precision  # accelerate's name for fp32
     if mixed == "fp16" and not cuda:
-        warnings.warn("fp16 mixed precision needs a GPU; training in fp32 on CPU")
+        warnings.warn("fp16 mixed precision needs a GPU; training in fp32 on CPU", stacklevel=2)
         mixed = "no"
     acc = Accelerator(mixed_precision=mixed, gradient_accumulation_steps=cfg.grad_accum, cpu=not cuda)
-    if hasattr(task, "to"):
-        task.to(acc.device)
-    module = task.trainable().to(acc.device)
-    params = [p for p in module.parameters() if p.requires_grad]
-    if not params:
-        raise ValueError("task.trainable() has no parameters with requires_grad=True")
-    optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
-    # accelerate steps a prepared scheduler num_processes times per optimizer step, hence the factor.
-    scheduler = _lr_schedule(optimizer, cfg.lr_schedule, cfg.warmup_steps * acc.num_processes,
-                             cfg.steps * acc.num_processes)
-    # One process: the module itself. Several: DDP (its constructor broadcasts rank 0's weights), or
-    # the DeepSpeed engine. task.loss calls this prepared model, so the wrapper's hooks see the forward.
-    model, optimizer, scheduler = acc.prepare(module, optimizer, scheduler)
+    module, model, optimizer, scheduler, params, sharded = prepare_training(acc, task, cfg)
     ema = None
     if cfg.ema_decay > 0:
         from diffusers.training_utils import EMAModel
 
         ema = EMAModel(params, decay=cfg.ema_decay)
     # One stream per process so the shards draw different noise; the loop never uses the global RNG.
-    generator = torch.Generator().manual_seed(cfg.seed + acc.process_index)
+    generator = torch.Generator().manual_seed(seed + acc.process_index)
 
     step, epoch, consumed, resumed_from, prior_seconds, final_loss = 0, 0, 0, None, 0.0, None
     if acc.is_main_process:
@@ -230,17 +259,27 @@ def train(task: Task, cfg: LoopConfig, checkpoint_dir: Path, live_dir: Path | No
     if acc.is_main_process:
         for note in notes:  # a damaged checkpoint and the fallback are said, never silent
             warnings.warn(note, stacklevel=2)
-    if latest is not None:
-        state, rng = ckpt.load_checkpoint(latest, model=acc.unwrap_model(model), optimizer=optimizer,
-                                          scheduler=scheduler, ema=ema)
+    if latest is not None:  # sharded: every process loads the full tensors and keeps its shard
+        state, rng = ckpt.load_checkpoint(
+            latest,
+            model=model if sharded else acc.unwrap_model(model),
+            optimizer=optimizer.optimizer if sharded else optimizer,
+            scheduler=scheduler,
+            ema=ema,
+        )
         _restore_rng(acc, generator, rng)
         step, epoch, consumed = state["step"], state["epoch"], state["batches_in_epoch"]
         resumed_from, prior_seconds, final_loss = step, state.get("seconds", 0.0), state.get("final_loss")
         acc.print(f"resuming from {latest} (step {step}, epoch {epoch}, batch {consumed})")
 
     live = _open_live(Path(live_dir), resumed_from) if live_dir is not None and acc.is_main_process else None
-    bar = tqdm(total=cfg.steps, initial=min(step, cfg.steps), unit="step", dynamic_ncols=True,
-               disable=not (progress and acc.is_local_main_process))
+    bar = tqdm(
+        total=cfg.steps,
+        initial=min(step, cfg.steps),
+        unit="step",
+        dynamic_ncols=True,
+        disable=not (progress and acc.is_local_main_process),
+    )
     start, micro = time.perf_counter(), 0
     win_t, win_n, win_loss, win_scalars = start, 0, torch.zeros((), device=acc.device), {}
     model.train()
@@ -278,8 +317,10 @@ def train(task: Task, cfg: LoopConfig, checkpoint_dir: Path, live_dir: Path | No
                 now = time.perf_counter()
                 final_loss = acc.reduce(win_loss / win_n, "mean").item()  # all processes reach this together
                 if not math.isfinite(final_loss):  # stop before a checkpoint of diverged weights replaces a good one
-                    raise ckpt.NonFiniteError(f"non-finite loss {final_loss} at step {step}; not checkpointed, "
-                                              f"{checkpoint_dir} keeps its last good checkpoint")
+                    raise ckpt.NonFiniteError(
+                        f"non-finite loss {final_loss} at step {step}; not checkpointed, "
+                        f"{checkpoint_dir} keeps its last good checkpoint"
+                    )
                 rate = win_n * task.samples_per_batch * acc.num_processes / max(now - win_t, 1e-9)
                 bar.set_postfix(loss=f"{final_loss:.4f}")
                 if live is not None:
@@ -292,38 +333,65 @@ def train(task: Task, cfg: LoopConfig, checkpoint_dir: Path, live_dir: Path | No
                     live.next_step()
                 win_t, win_n, win_loss, win_scalars = now, 0, torch.zeros((), device=acc.device), {}
 
-            if live is not None and step % cfg.image_every == 0:
-                # fork_rng: image sampling on the main process must not shift any training RNG stream.
-                with torch.no_grad(), acc.autocast(), torch.random.fork_rng(devices=[acc.device] if cuda else []):
-                    for name, grid in task.images(send_to_device(batch, acc.device)).items():
-                        live.log_image(f"{name}.png", numpy.asarray(grid))
-                model.train()
+            if live_dir is not None and step % cfg.image_every == 0:
+                if sharded:  # a collective: the main process receives the whole weights for its previews
+                    sharding.whole_weights(model, module, everywhere=False)
+                if live is not None:
+                    # fork_rng: image sampling on the main process must not shift any training RNG stream.
+                    with torch.no_grad(), acc.autocast(), torch.random.fork_rng(devices=[acc.device] if cuda else []):
+                        for name, grid in task.images(send_to_device(batch, acc.device)).items():
+                            live.log_image(f"{name}.png", numpy.asarray(grid))
+                    model.train()
+                if sharded:
+                    sharding.release(module)
 
             if step % cfg.checkpoint_every == 0 or step == cfg.steps:
                 # checkpoint_every < log_every: the loss check above has not seen these steps yet, and
                 # a finite loss can precede NaN weights (the update after it diverged). Every process
                 # checks, so none is left waiting in a collective when the main one would refuse.
-                _check_finite_before_saving(acc, win_loss, win_n, params, ema, step)
+                _check_finite_before_saving(acc, win_loss, win_n, params, ema, step, sharded)
                 rng = _rng_tensors(acc, generator)  # collective: every process, before the main one writes
+                # Sharded: full CPU copies gathered onto the main process (a collective too).
+                saved = (
+                    ckpt.gather_sharded(model, optimizer.optimizer, ema)
+                    if sharded
+                    else (acc.unwrap_model(model), optimizer, ema)
+                )
                 if acc.is_main_process:
                     seconds = prior_seconds + time.perf_counter() - start
-                    ckpt.save_checkpoint(checkpoint_dir, step, model=acc.unwrap_model(model), optimizer=optimizer,
-                                         scheduler=scheduler, rng=rng, keep=cfg.keep_checkpoints, ema=ema,
-                                         progress={"epoch": epoch, "batches_in_epoch": consumed,
-                                                   "seconds": seconds, "final_loss": final_loss})
+                    ckpt.save_checkpoint(
+                        checkpoint_dir,
+                        step,
+                        model=saved[0],
+                        optimizer=saved[1],
+                        scheduler=scheduler,
+                        rng=rng,
+                        keep=cfg.keep_checkpoints,
+                        ema=saved[2],
+                        progress={
+                            "epoch": epoch,
+                            "batches_in_epoch": consumed,
+                            "seconds": seconds,
+                            "final_loss": final_loss,
+                        },
+                    )
                 acc.wait_for_everyone()
             if step >= cfg.steps:
                 break
         if seen == 0:
             raise RuntimeError(f"task.batches({epoch}) yielded no batches; an empty epoch would loop forever")
         if seen < consumed:
-            raise RuntimeError(f"task.batches({epoch}) yielded {seen} batches but the checkpoint consumed "
-                               f"{consumed}: batches() is not deterministic, cannot resume")
+            raise RuntimeError(
+                f"task.batches({epoch}) yielded {seen} batches but the checkpoint consumed "
+                f"{consumed}: batches() is not deterministic, cannot resume"
+            )
         if step < cfg.steps:  # epoch exhausted (not a mid-epoch stop): next epoch from its first batch
             epoch, consumed = epoch + 1, 0
     bar.close()
     if ema is not None:  # checkpoints keep the raw weights (to continue training); the module leaves as the EMA
         ema.copy_to(params)
+    if sharded:  # the task's module leaves holding the trained weights, whole, on every process
+        sharding.whole_weights(model, module, everywhere=True)
 
     seconds = time.perf_counter() - start
     stats = {

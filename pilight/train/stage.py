@@ -1,17 +1,33 @@
 """What both training stage scripts (stages/train_intrinsics.py, stages/train_relight.py) do around
 :func:`pilight.train.loop.train`: check the shards, build the task, train with a run identity,
-save the model.  Each script keeps only its params section and how its task is built."""
+save the model.  Each script keeps only its params section and how its task is built; the exit
+codes come from pilight.stage_cli."""
 
 from __future__ import annotations
 
-import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
+
+from pilight.stage_cli import fails_on
 
 
-def run_training_stage(name: str, section: str, base: Any, p: Any, make_task: Callable[[], Any], *,
-                       shards: Path, data: list[Path], out: Path, checkpoints: Path, live: Path) -> int:
-    """Exit code: 1 on bad data or model input (before training starts), else 0.
+def run_training_stage(
+    name: str,
+    section: str,
+    base: Any,
+    p: Any,
+    make_task: Callable[[], Any],
+    *,
+    shards: Path,
+    data: list[Path],
+    out: Path,
+    checkpoints: Path,
+    live: Path,
+) -> int:
+    """Exit code 0; bad data or model input (before training starts) and damage found while it runs
+    (a shard, a checkpoint, a diverged loss, a full disk) end the stage with exit 1 and a message
+    naming the file (pilight.stage_cli.fails_on).
 
     ``data``: the inputs whose bytes belong to the run's identity (checkpoint.run_identity).
     A task with ``describe()`` (what each substituted part is) has it printed and written to
@@ -22,33 +38,35 @@ def run_training_stage(name: str, section: str, base: Any, p: Any, make_task: Ca
     from pilight.data.schema import DataError
     from pilight.data.shards import read_index
     from pilight.train.build import ModelError, check_image_size, save_model
-    from pilight.train.checkpoint import run_identity
-    from pilight.train.loop import loop_config, train
+    from pilight.train.checkpoint import CheckpointError, run_identity
+    from pilight.train.loop import train
 
     # Before the task is built: its model is initialised from the global RNG. Seeding after it
     # (as this function once did) gave every run different initial weights.
     torch.manual_seed(base.seed)
-    try:
+    with fails_on(DataError, ModelError, OSError, ValueError, FloatingPointError):
         index = read_index(shards)
         if not index["splits"].get("train", {}).get("shards"):
             raise DataError(f"{shards}: the train split has no shards")
         task = make_task()
         check_image_size(tuple(index["sizes"]["image"][:2]), task.stack.codec.factor, f"{shards}/index.json")
-    except (DataError, ModelError, FileNotFoundError, ValueError) as exc:
-        print(f"{name}: {exc}", file=sys.stderr)
-        return 1
-    described = task.describe() if hasattr(task, "describe") else None
-    if described is not None:
-        print(f"{name}: {described}")
-    identity = run_identity(base.seed, section, p.model_dump(mode="json"), data)
-    stats = train(task, loop_config(p.train, base.seed), checkpoints, live, identity=identity)
-    from accelerate import PartialState
+    # Damage found once training runs (a shard, a checkpoint, a diverged loss, a full disk) is a
+    # message naming the file and exit 1, like damage found before it starts.
+    with fails_on(DataError, ModelError, CheckpointError, FloatingPointError, OSError):
+        described = task.describe() if hasattr(task, "describe") else None
+        if described is not None:
+            print(f"{name}: {described}")
+        identity = run_identity(base.seed, section, p.model_dump(mode="json"), data)
+        stats = train(task, p.train, checkpoints, live, seed=base.seed, identity=identity)
+        from accelerate import PartialState
 
-    if not PartialState().is_main_process:  # every rank ends with the same weights; one writes them
-        return 0
-    save_model(task.stack, out, p.model_dump(mode="json"))
-    if described is not None:
-        atomic.write_json(out / "task.json", described, sort_keys=True)
-    print(f"{name}: {stats['steps']} steps in {stats['seconds']:.0f} s "
-          f"({stats['samples_per_second']:.2f} samples/s), final loss {stats['final_loss']:.4f} -> {out}")
+        if not PartialState().is_main_process:  # every rank ends with the same weights; one writes them
+            return 0
+        save_model(task.stack, out, p.model_dump(mode="json"))
+        if described is not None:
+            atomic.write_json(out / "task.json", described, sort_keys=True)
+    print(
+        f"{name}: {stats['steps']} steps in {stats['seconds']:.0f} s "
+        f"({stats['samples_per_second']:.2f} samples/s), final loss {stats['final_loss']:.4f} -> {out}"
+    )
     return 0

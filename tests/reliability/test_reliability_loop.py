@@ -10,8 +10,9 @@ import pytest
 import torch
 from accelerate.state import AcceleratorState
 
+from pilight.params import TrainParams
 from pilight.train import checkpoint as ckpt
-from pilight.train.loop import LoopConfig, train
+from pilight.train.loop import train
 
 
 @pytest.fixture(autouse=True)
@@ -44,22 +45,44 @@ class Toy:
 
 
 def _cfg(**kw):
-    return LoopConfig(**{**dict(steps=6, lr=1e-2, checkpoint_every=2, keep_checkpoints=3, log_every=3,
-                                image_every=100, max_grad_norm=None), **kw})
+    return TrainParams(
+        **{
+            **dict(
+                warmup_steps=0,
+                steps=6,
+                lr=1e-2,
+                checkpoint_every=2,
+                keep_checkpoints=3,
+                log_every=3,
+                image_every=100,
+                max_grad_norm=None,
+            ),
+            **kw,
+        }
+    )
 
 
 def _all_finite(folder: Path) -> bool:
     from safetensors.torch import load_file
 
-    return all(torch.isfinite(t).all() for p in ckpt.list_checkpoints(folder)
-               for t in load_file(str(p / ckpt.MODEL_FILE)).values())
+    return all(
+        torch.isfinite(t).all()
+        for p in ckpt.list_checkpoints(folder)
+        for t in load_file(str(p / ckpt.MODEL_FILE)).values()
+    )
 
 
 def test_infinite_lr_writes_no_nan_checkpoint(tmp_path: Path):
     # lr = inf, checkpoint_every (1) < log_every (5): step 1's loss is finite, its update is not.
     # Before: NaN checkpoints were written at steps 1..4, before the loss check at step 5 fired.
     with pytest.raises(FloatingPointError, match="step 1"):
-        train(Toy(), _cfg(lr=float("inf"), checkpoint_every=1, log_every=5), tmp_path / "c", None, progress=False)
+        train(
+            Toy(),
+            _cfg(checkpoint_every=1, log_every=5).model_copy(update={"lr": float("inf")}),
+            tmp_path / "c",
+            None,
+            progress=False,
+        )
     assert ckpt.list_checkpoints(tmp_path / "c") == []
 
 
@@ -70,7 +93,7 @@ def test_damaged_newest_checkpoint_is_warned_about_and_the_previous_one_used(tmp
     newest = ckpt.checkpoint_path(tmp_path / "c", 4) / ckpt.MODEL_FILE
     raw = bytearray(newest.read_bytes())
     (n,) = struct.unpack("<Q", raw[:8])
-    raw[8 + n:8 + n + 32] = bytes(b ^ 0xFF for b in raw[8 + n:8 + n + 32])
+    raw[8 + n : 8 + n + 32] = bytes(b ^ 0xFF for b in raw[8 + n : 8 + n + 32])
     newest.write_bytes(bytes(raw))
     resumed = Toy()
     with warnings.catch_warnings(record=True) as caught:

@@ -12,8 +12,9 @@ import torch
 from accelerate.state import AcceleratorState
 from safetensors.torch import load_file
 
+from pilight.params import TrainParams
 from pilight.train import checkpoint as ckpt
-from pilight.train.loop import LoopConfig, train
+from pilight.train.loop import train
 
 
 @pytest.fixture(autouse=True)
@@ -60,9 +61,13 @@ class ToyTask:
         return {"grid": np.repeat(np.repeat(v, 4, 0)[..., None], 3, -1)}  # H=16, W=8, 3
 
 
-def cfg(**kw) -> LoopConfig:
+# The loop's settings are the stages' own params section; these are the toy runs' values.
+LOOP = dict(lr=1e-4, warmup_steps=0, checkpoint_every=100, image_every=100, log_every=10)
+
+
+def cfg(**kw) -> TrainParams:
     base = dict(steps=12, lr=1e-2, warmup_steps=3, checkpoint_every=4, keep_checkpoints=2, log_every=2, image_every=5)
-    return LoopConfig(**{**base, **kw})
+    return TrainParams(**{**LOOP, **base, **kw})
 
 
 def weights(task: ToyTask) -> dict[str, torch.Tensor]:
@@ -198,8 +203,9 @@ def test_run_identity_ignores_steps_and_sees_the_data(tmp_path: Path):
     (tmp_path / "d" / "a.tar").write_bytes(b"abc")
     p = {"lr": 1e-4, "train": {"steps": 10, "lr": 1e-4, "log_every": 5}}
     a = ckpt.run_identity(42, "intrinsics", p, [tmp_path / "d"])
-    b = ckpt.run_identity(42, "intrinsics", {**p, "train": {**p["train"], "steps": 99, "log_every": 1}},
-                          [tmp_path / "d"])
+    b = ckpt.run_identity(
+        42, "intrinsics", {**p, "train": {**p["train"], "steps": 99, "log_every": 1}}, [tmp_path / "d"]
+    )
     assert a == b and p["train"]["steps"] == 10  # the caller's dict is not modified
     assert ckpt.run_identity(42, "intrinsics", {**p, "lr": 2e-4}, [tmp_path / "d"]) != a
     (tmp_path / "d" / "a.tar").write_bytes(b"abd")
@@ -259,13 +265,13 @@ def test_dvclive_outputs(tmp_path: Path, monkeypatch):
 
 def test_invalid_config():
     with pytest.raises(ValueError):
-        LoopConfig(steps=10, grad_accum=0)
+        TrainParams(steps=10, grad_accum=0)
     with pytest.raises(ValueError):
-        LoopConfig(steps=10, mixed_precision="fp8")
+        TrainParams(steps=10, mixed_precision="fp8")
     with pytest.raises(ValueError, match="lr_schedule"):
-        LoopConfig(steps=10, lr_schedule="linear")
+        TrainParams(steps=10, lr_schedule="linear")
     with pytest.raises(ValueError, match="ema_decay"):
-        LoopConfig(steps=10, ema_decay=1.0)
+        TrainParams(steps=10, ema_decay=1.0)
 
 
 class ShardedToyTask:
@@ -292,10 +298,10 @@ class ShardedToyTask:
     def batches(self, epoch: int):
         g = torch.Generator().manual_seed(1000 + epoch)
         extra = 1 if self.world > 1 and self.rank == 0 else 0
-        for k in range(self.n_batches + extra):
+        for _k in range(self.n_batches + extra):
             x = torch.randn(2 * self.per_rank, 8, generator=g)  # the global batch of 2 ranks
             if self.world > 1:
-                x = x[self.rank * self.per_rank:(self.rank + 1) * self.per_rank]
+                x = x[self.rank * self.per_rank : (self.rank + 1) * self.per_rank]
             yield {"x": x, "y": x.flip(-1) * 0.5}
 
     def loss(self, batch, generator, model):
@@ -305,8 +311,10 @@ class ShardedToyTask:
         return {}
 
 
-def ddp_cfg(steps: int) -> LoopConfig:
-    return LoopConfig(steps=steps, lr=1e-2, checkpoint_every=4, keep_checkpoints=2, log_every=2, image_every=100)
+def ddp_cfg(steps: int) -> TrainParams:
+    return TrainParams(
+        **{**LOOP, **dict(steps=steps, lr=1e-2, checkpoint_every=4, keep_checkpoints=2, log_every=2, image_every=100)}
+    )
 
 
 _TWO_PROCESS_SCRIPT = """
@@ -334,8 +342,22 @@ def test_two_processes_train_what_one_process_trains_on_their_batches(tmp_path: 
     script = tmp_path / "two.py"
     script.write_text(_TWO_PROCESS_SCRIPT.format(here=str(Path(__file__).parent)))
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).parents[2])}
-    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-                           str(script), str(tmp_path)], env=env, capture_output=True, text=True, timeout=180)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "torch.distributed.run",
+            "--standalone",
+            "--nproc_per_node",
+            "2",
+            str(script),
+            str(tmp_path),
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     w = {(n, r): load_file(str(tmp_path / f"{n}-{r}.st")) for n in ("ddp", "resumed") for r in (0, 1)}
     assert_bit_equal(w["ddp", 0], w["ddp", 1])
@@ -349,7 +371,7 @@ def test_two_processes_train_what_one_process_trains_on_their_batches(tmp_path: 
     start = ShardedToyTask(world=1).net.state_dict()
     for k, ref in one.net.state_dict().items():
         assert not torch.allclose(ref, start[k], atol=1e-3), f"{k} barely trained: the test would prove nothing"
-        torch.testing.assert_close(w["ddp", 0][k], ref, rtol=1e-5, atol=1e-6, msg=lambda m: f"{k}: {m}")
+        torch.testing.assert_close(w["ddp", 0][k], ref, rtol=1e-5, atol=1e-6, msg=lambda m: f"{k}: {m}")  # noqa: B023 (called within this iteration)
 
 
 def test_non_finite_loss_stops_training(tmp_path: Path):
