@@ -61,8 +61,12 @@ def d_calculated(ball: np.ndarray) -> torch.Tensor:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", type=int, default=6)
-    ap.add_argument("--configs", nargs="+", type=parse_config,
-                    default=[parse_config(c) for c in ("64x32x16", "32x32x4", "32x16x4", "32x1024x0")])
+    ap.add_argument(
+        "--configs",
+        nargs="+",
+        type=parse_config,
+        default=[parse_config(c) for c in ("64x32x16", "32x32x4", "32x16x4", "32x1024x0")],
+    )
     a = ap.parse_args()
     p = RenderParams(views_per_scene=2, lights_per_view=4)
     tmp = Path(tempfile.mkdtemp(prefix="bench_ball_"))
@@ -84,13 +88,17 @@ def main() -> None:
                     err = float(((d_calculated(ball) - ref) ** 2).mean())
                     psnr.setdefault((kind, config), []).append(10 * np.log10(float(ref.max()) ** 2 / max(err, 1e-20)))
                     seconds.setdefault((kind, config), []).append(dt)
-    print(f"\nD_calculated PSNR against {REFERENCE[0]}^2 at {REFERENCE[1]} spp; {a.scenes} scenes, threshold "
-          f"{p.cycles.adaptive_threshold}\n")
+    print(
+        f"\nD_calculated PSNR against {REFERENCE[0]}^2 at {REFERENCE[1]} spp; {a.scenes} scenes, threshold "
+        f"{p.cycles.adaptive_threshold}\n"
+    )
     print("| light | ball res | spp | adaptive min | n | ms / ball (median) | PSNR mean (dB) | PSNR min (dB) |")
     print("|---|---|---|---|---|---|---|---|")
     for (kind, (res, spp, floor)), values in sorted(psnr.items()):
         ms = 1000 * statistics.median(seconds[(kind, (res, spp, floor))])
-        print(f"| {kind} | {res} | {spp} | {floor} | {len(values)} | {ms:.1f} | {np.mean(values):.1f} | {np.min(values):.1f} |")
+        print(
+            f"| {kind} | {res} | {spp} | {floor} | {len(values)} | {ms:.1f} | {np.mean(values):.1f} | {np.min(values):.1f} |"
+        )
 
 
 if __name__ == "__main__":

@@ -50,14 +50,17 @@ def _case(models: str, size: int, case: str, repeats: int, threads: int, q) -> N
     from pilight import lights
     from pilight.pipeline import PILightPipeline
 
-    pipe = PILightPipeline.from_pretrained(models, device="cpu", params=REPO / "params.yaml",
-                                           processing_resolution=size)
+    pipe = PILightPipeline.from_pretrained(
+        models, device="cpu", params=REPO / "params.yaml", processing_resolution=size
+    )
     photo = np.asarray(Image.fromarray(astronaut()).resize((size, size), Image.LANCZOS))
     six = [lights.directional(a, 30.0) for a in (-150, -90, -30, 30, 90, 150)]
-    run = {"decompose": lambda: pipe.decompose(photo),
-           "relight, 1 light": lambda: pipe.relight(photo, six[:1]),
-           "relight, 6 lights": lambda: pipe.relight(photo, six),
-           "6 x relight, 1 light": lambda: [pipe.relight(photo, [l]) for l in six]}[case]
+    run = {
+        "decompose": lambda: pipe.decompose(photo),
+        "relight, 1 light": lambda: pipe.relight(photo, six[:1]),
+        "relight, 6 lights": lambda: pipe.relight(photo, six),
+        "6 x relight, 1 light": lambda: [pipe.relight(photo, [l]) for l in six],
+    }[case]
     base = _current_rss_mib()
     run()  # warm-up (allocator, kernels)
     times = []
@@ -68,8 +71,14 @@ def _case(models: str, size: int, case: str, repeats: int, threads: int, q) -> N
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 - base
     k = 0 if case == "decompose" else (6 if "6 lights" in case else 1)
     est = pipe.estimate_memory(size, size, k)["host"] / 2**20
-    q.put({"seconds": statistics.median(times), "peak_mib": peak, "estimate_mib": est,
-           "processing": pipe.processing_size(size, size)})
+    q.put(
+        {
+            "seconds": statistics.median(times),
+            "peak_mib": peak,
+            "estimate_mib": est,
+            "processing": pipe.processing_size(size, size),
+        }
+    )
 
 
 def main() -> int:
@@ -80,7 +89,9 @@ def main() -> int:
     ap.add_argument("--models", type=Path, default=REPO / "models")
     ap.add_argument("--cases", nargs="+", default=list(CASES), choices=CASES)
     args = ap.parse_args()
-    trained = (args.models / "intrinsics" / "model.safetensors").is_file() and (args.models / "relight" / "model.safetensors").is_file()
+    trained = (args.models / "intrinsics" / "model.safetensors").is_file() and (
+        args.models / "relight" / "model.safetensors"
+    ).is_file()
     tmp = None
     models = args.models
     if not trained:
@@ -88,8 +99,10 @@ def main() -> int:
 
         tmp = tempfile.TemporaryDirectory()
         models = save_tiny_models(Path(tmp.name), unet=None)
-    print(f"models: {'trained, ' + str(args.models) if trained else 'params.yaml UNets, untrained'}; "
-          f"{args.threads} threads; median of {args.repeats} after a warm-up; astronaut resized to each size")
+    print(
+        f"models: {'trained, ' + str(args.models) if trained else 'params.yaml UNets, untrained'}; "
+        f"{args.threads} threads; median of {args.repeats} after a warm-up; astronaut resized to each size"
+    )
     ctx = mp.get_context("spawn")
     rows = []
     for size in args.sizes:
@@ -108,8 +121,10 @@ def main() -> int:
     by = {(s, c): r["seconds"] for s, c, r in rows}
     for size in args.sizes:
         if (size, "relight, 6 lights") in by and (size, "6 x relight, 1 light") in by:
-            print(f"{size}²: 6 lights in one call take {by[size, 'relight, 6 lights'] / by[size, '6 x relight, 1 light']:.2f}"
-                  " of six separate calls")
+            print(
+                f"{size}²: 6 lights in one call take {by[size, 'relight, 6 lights'] / by[size, '6 x relight, 1 light']:.2f}"
+                " of six separate calls"
+            )
     if tmp is not None:
         tmp.cleanup()
     return 0

@@ -25,8 +25,16 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import torch  # noqa: E402
 
-from pilight.diffusion import (PAPER_UNET_SPEC, DomainDiffusion, LearnedEmbedding, PixelCodec,  # noqa: E402
-                               UNetSpec, build_unet, make_train_scheduler, sample, v_target)
+from pilight.diffusion import (  # noqa: E402
+    PAPER_UNET_SPEC,
+    DomainDiffusion,
+    LearnedEmbedding,
+    PixelCodec,
+    UNetSpec,
+    build_unet,
+    make_train_scheduler,
+    sample,
+)
 
 DOMAINS = 4
 SAMPLING = [("single_step", 1), ("ddim", 1), ("ddim", 4), ("ddim", 10), ("ddim", 50)]
@@ -53,8 +61,9 @@ def _timed(fn, device, repeats):
 def _model(spec, latent_ch, cond_ch, cross_batch, device):
     torch.manual_seed(0)
     unet = build_unet(spec, latent_ch + cond_ch, latent_ch, DOMAINS)
-    return DomainDiffusion(unet, LearnedEmbedding(spec.cross_attention_dim), DOMAINS, cond_ch,
-                           num_views=DOMAINS, cross_batch=cross_batch).to(device)
+    return DomainDiffusion(
+        unet, LearnedEmbedding(spec.cross_attention_dim), DOMAINS, cond_ch, num_views=DOMAINS, cross_batch=cross_batch
+    ).to(device)
 
 
 def _peak_mb(device):
@@ -69,11 +78,19 @@ def bench_sampling(model, codec, size, latent_ch, mode, steps, device, amp, repe
 
     def run():
         with amp():
-            cond = (codec.encode(image) if codec else torch.randn(1, latent_ch, size, size, device=device))
+            cond = codec.encode(image) if codec else torch.randn(1, latent_ch, size, size, device=device)
             cond = cond.repeat_interleave(DOMAINS, 0)
             ehs = model.embed(image).repeat_interleave(DOMAINS, 0)
-            x0 = sample(model, cond, ids, ehs, num_views=DOMAINS, steps=steps, mode=mode,
-                        generator=torch.Generator(device).manual_seed(1))
+            x0 = sample(
+                model,
+                cond,
+                ids,
+                ehs,
+                num_views=DOMAINS,
+                steps=steps,
+                mode=mode,
+                generator=torch.Generator(device).manual_seed(1),
+            )
             return codec.decode(x0) if codec else x0
 
     if device.type == "cuda":
@@ -90,9 +107,10 @@ def bench_training(model, latent_ch, cond_ch, hw, device, amp, repeats, samples=
     t = torch.randint(0, 1000, (n,), generator=g)
     x0, cond, noise, t = (a.to(device) for a in (x0, cond, noise, t))
     ids = torch.arange(DOMAINS, device=device).repeat(samples)
-    ac = make_train_scheduler().alphas_cumprod.to(device)
+    sched = make_train_scheduler()
+    ac = sched.alphas_cumprod.to(device)
     x_t = ac[t].sqrt().view(-1, 1, 1, 1) * x0 + (1 - ac[t]).sqrt().view(-1, 1, 1, 1) * noise
-    target = v_target(x0, noise, ac, t)
+    target = sched.get_velocity(x0, noise, t)
     opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-5)
     model.train()
 
@@ -126,16 +144,27 @@ def main():
         amp = contextlib.nullcontext
 
     if args.paper:  # SD2 UNet on VAE-sized latents (no VAE here: random condition latents)
-        configs = [(PAPER_UNET_SPEC, 4, 4, hw, None, f"SD2 UNet, latent 4x{hw}x{hw} ({hw * 8}^2 image)")
-                   for hw in (32, 96)]
+        configs = [
+            (PAPER_UNET_SPEC, 4, 4, hw, None, f"SD2 UNet, latent 4x{hw}x{hw} ({hw * 8}^2 image)") for hw in (32, 96)
+        ]
     else:
         codec = PixelCodec(4)
-        configs = [(UNetSpec(), codec.latent_channels, codec.latent_channels, 32, codec,
-                    "scratch UNet, 128^2 image, pixel-unshuffle-4 -> 48x32x32")]
+        configs = [
+            (
+                UNetSpec(),
+                codec.latent_channels,
+                codec.latent_channels,
+                32,
+                codec,
+                "scratch UNet, 128^2 image, pixel-unshuffle-4 -> 48x32x32",
+            )
+        ]
 
     print(f"command: python {' '.join(sys.argv)}")
-    print(f"device: {device} ({torch.cuda.get_device_name(device) if device.type == 'cuda' else f'{torch.get_num_threads()} CPU threads'}), "
-          f"torch {torch.__version__}, bf16 autocast: {device.type == 'cuda'}, repeats: {args.repeats}\n")
+    print(
+        f"device: {device} ({torch.cuda.get_device_name(device) if device.type == 'cuda' else f'{torch.get_num_threads()} CPU threads'}), "
+        f"torch {torch.__version__}, bf16 autocast: {device.type == 'cuda'}, repeats: {args.repeats}\n"
+    )
     for spec, latent_ch, cond_ch, hw, codec, title in configs:
         print(f"### {title}\n")
         print("| case | cross-batch attn | s / image (4 domains) | images / s | peak MiB |")
@@ -151,8 +180,11 @@ def main():
                 name = "single step" if mode == "single_step" else f"DDIM {steps}"
                 print(f"| {name} | {'on' if cross else 'off'} | {sec:.3f} | {1 / sec:.2f} | {peak} |", flush=True)
             sec, peak = bench_training(model, latent_ch, cond_ch, hw, device, amp, args.repeats)
-            print(f"| train step, batch 2x4 ({60 / sec:.1f} steps/min, {1 / sec:.2f} it/s) | {'on' if cross else 'off'} "
-                  f"| {sec:.3f} s/step | | {peak} |", flush=True)
+            print(
+                f"| train step, batch 2x4 ({60 / sec:.1f} steps/min, {1 / sec:.2f} it/s) | {'on' if cross else 'off'} "
+                f"| {sec:.3f} s/step | | {peak} |",
+                flush=True,
+            )
             del model
         print()
 

@@ -40,19 +40,30 @@ def fake_renders(root: Path, n_samples: int, size: int) -> None:
         sid = f"train_{i:04d}"
         manifest["scenes"].append({"id": sid, "kind": "object", "split": "train", "views": VIEWS, "lights": LIGHTS})
         (root / sid).mkdir(parents=True)
-        (root / sid / "scene.json").write_text(json.dumps({
-            "cameras": [{"view": v} for v in range(VIEWS)], "lights": [{"light": li} for li in range(LIGHTS)]}))
+        (root / sid / "scene.json").write_text(
+            json.dumps(
+                {"cameras": [{"view": v} for v in range(VIEWS)], "lights": [{"light": li} for li in range(LIGHTS)]}
+            )
+        )
         for v in range(VIEWS):
             n = rng.normal(size=(size, size, 3))
             a = rng.random((size, size, 3), dtype=np.float32)
-            for name, arr in {"albedo": a, "normal": n / np.linalg.norm(n, axis=-1, keepdims=True),
-                              "roughness": rng.random((size, size, 1)), "metallic": rng.random((size, size, 1)),
-                              "mask": np.ones((size, size, 1))}.items():
+            for name, arr in {
+                "albedo": a,
+                "normal": n / np.linalg.norm(n, axis=-1, keepdims=True),
+                "roughness": rng.random((size, size, 1)),
+                "metallic": rng.random((size, size, 1)),
+                "mask": np.ones((size, size, 1)),
+            }.items():
                 write_exr(layout.map_path(root, sid, v, name), arr, half=name != "albedo")
             for li in range(LIGHTS):
                 d, s = rng.random((size, size, 3), dtype=np.float32) * 4, rng.random((size, size, 3), dtype=np.float32)
-                for name, arr in {"image": a * d + s, "diffuse": d, "specular": s,
-                                  "ball": rng.random((64, 64, 3))}.items():
+                for name, arr in {
+                    "image": a * d + s,
+                    "diffuse": d,
+                    "specular": s,
+                    "ball": rng.random((64, 64, 3)),
+                }.items():
                     write_exr(layout.map_path(root, sid, v, name, li), arr, half=name == "ball")
             (layout.view_dir(root, sid, v) / layout.DONE_MARKER).touch()
     (root / "manifest.json").write_text(json.dumps(manifest))
@@ -105,15 +116,22 @@ def main() -> None:
             write_shards(renders, shards, ShardParams(maxcount=max(1, args.samples // 4)), seed=0)
             for task, make in (("intrinsics", intrinsics_dataset), ("relight (pairs)", relight_dataset)):
                 for workers in (0, 2):
-                    rows.append((task, size, workers, rate(make(shards, "train", seed=0), args.batch, workers, args.passes)))
+                    rows.append(
+                        (task, size, workers, rate(make(shards, "train", seed=0), args.batch, workers, args.passes))
+                    )
             consumption[size] = train_rate(shards)
-    print(f"`python benchmarks/bench_loader.py --samples {args.samples} --batch {args.batch} --passes {args.passes}`"
-          f" on {platform.machine()}, {os.cpu_count()} CPU cores\n")
+    print(
+        f"`python benchmarks/bench_loader.py --samples {args.samples} --batch {args.batch} --passes {args.passes}`"
+        f" on {platform.machine()}, {os.cpu_count()} CPU cores\n"
+    )
     print("| loader | size | workers | samples/s | x stage-1 training's consumption |\n|---|---|---|---|---|")
     for task, size, workers, r in rows:
         print(f"| {task} | {size}x{size} | {workers} | {r:.0f} | {r / consumption[size]:.0f}x |")
-    print("\nStage-1 training (params.yaml `intrinsics`, CPU) consumes "
-          + ", ".join(f"{c:.1f} samples/s at {s}x{s}" for s, c in consumption.items()) + "; target: loader >= 10x.")
+    print(
+        "\nStage-1 training (params.yaml `intrinsics`, CPU) consumes "
+        + ", ".join(f"{c:.1f} samples/s at {s}x{s}" for s, c in consumption.items())
+        + "; target: loader >= 10x."
+    )
 
 
 if __name__ == "__main__":

@@ -22,8 +22,14 @@ import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-CASES = ["diffuse_shading", "L_DS", "L_PS", "L_rec pooled-rgb-8x8", "all (pooled-rgb) + 1/t",
-         "L_rec dinov2 ViT-B/14 random @224"]
+CASES = [
+    "diffuse_shading",
+    "L_DS",
+    "L_PS",
+    "L_rec pooled-rgb-8x8",
+    "all (pooled-rgb) + 1/t",
+    "L_rec dinov2 ViT-B/14 random @224",
+]
 
 
 def _inputs(torch, b, s, dev):
@@ -31,9 +37,16 @@ def _inputs(torch, b, s, dev):
     n = torch.randn(b, 3, s, s, generator=g)
     n = n / n.norm(dim=1, keepdim=True)
     t = lambda: torch.rand(b, 3, s, s, generator=g).to(dev)
-    return dict(env=torch.rand(b, 3, 16, 32, generator=g).to(dev), normals=n.to(dev),
-                mask=(torch.rand(b, 1, s, s, generator=g) > 0.2).float().to(dev),
-                relit=t(), inp=t(), albedo=t(), d_pred=t(), s_pred=t())
+    return dict(
+        env=torch.rand(b, 3, 16, 32, generator=g).to(dev),
+        normals=n.to(dev),
+        mask=(torch.rand(b, 1, s, s, generator=g) > 0.2).float().to(dev),
+        relit=t(),
+        inp=t(),
+        albedo=t(),
+        d_pred=t(),
+        s_pred=t(),
+    )
 
 
 def _vit_b(tmp, dev):
@@ -41,8 +54,14 @@ def _vit_b(tmp, dev):
 
     from pilight.physics import Dinov2Features
 
-    cfg = Dinov2Config(hidden_size=768, num_hidden_layers=12, num_attention_heads=12,
-                       intermediate_size=3072, patch_size=14, image_size=518)
+    cfg = Dinov2Config(
+        hidden_size=768,
+        num_hidden_layers=12,
+        num_attention_heads=12,
+        intermediate_size=3072,
+        patch_size=14,
+        image_size=518,
+    )
     Dinov2Model(cfg).save_pretrained(tmp)  # random init, dinov2-base shape; loaded like real weights
     return Dinov2Features(tmp, resolution=224).to(dev)
 
@@ -50,8 +69,14 @@ def _vit_b(tmp, dev):
 def _case(name, backward, args, q):
     import torch
 
-    from pilight.physics import (PooledRGBFeatures, diffuse_shading, diffuse_shading_loss,
-                                 physical_shading_loss, physics_loss, reconstruction_loss)
+    from pilight.physics import (
+        PooledRGBFeatures,
+        diffuse_shading,
+        diffuse_shading_loss,
+        physical_shading_loss,
+        physics_loss,
+        reconstruction_loss,
+    )
 
     dev = torch.device(args.device)
     torch.manual_seed(0)
@@ -80,9 +105,14 @@ def _case(name, backward, args, q):
             with torch.no_grad():
                 d_calc = diffuse_shading(x["env"], x["normals"], x["mask"])
             r = "none"
-            out = physics_loss(t_steps, diffuse_shading_loss(d_calc, d_pred, x["mask"], r),
-                               physical_shading_loss(relit, x["albedo"], d_pred, s_pred, x["mask"], r),
-                               reconstruction_loss(relit, x["inp"], ext, r), (1.0, 1.0, 1.0), 1.0)
+            out = physics_loss(
+                t_steps,
+                diffuse_shading_loss(d_calc, d_pred, x["mask"], r),
+                physical_shading_loss(relit, x["albedo"], d_pred, s_pred, x["mask"], r),
+                reconstruction_loss(relit, x["inp"], ext, r),
+                (1.0, 1.0, 1.0),
+                1.0,
+            )
         if backward:
             out.backward()
         return out
@@ -134,13 +164,17 @@ def main():
         rows.append((name, res))
         print(f"done: {name}", file=sys.stderr, flush=True)
     mem = "CUDA max_memory_allocated delta" if args.device.startswith("cuda") else "ru_maxrss delta"
-    print(f"\nbatch {args.batch} x 3 x {args.size} x {args.size}, device {args.device}, "
-          f"torch {torch.__version__}, threads {torch.get_num_threads()}, median of {args.repeats}\n")
+    print(
+        f"\nbatch {args.batch} x 3 x {args.size} x {args.size}, device {args.device}, "
+        f"torch {torch.__version__}, threads {torch.get_num_threads()}, median of {args.repeats}\n"
+    )
     print(f"| case | fwd ms | fwd+bwd ms | fwd peak MiB | fwd+bwd peak MiB ({mem}) |")
     print("|---|---:|---:|---:|---:|")
     for name, r in rows:
-        print(f"| {name} | {r['fwd'][0] * 1e3:.1f} | {r['fwd+bwd'][0] * 1e3:.1f} "
-              f"| {r['fwd'][1]:.0f} | {r['fwd+bwd'][1]:.0f} |")
+        print(
+            f"| {name} | {r['fwd'][0] * 1e3:.1f} | {r['fwd+bwd'][0] * 1e3:.1f} "
+            f"| {r['fwd'][1]:.0f} | {r['fwd+bwd'][1]:.0f} |"
+        )
 
 
 if __name__ == "__main__":

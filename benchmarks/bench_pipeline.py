@@ -64,8 +64,9 @@ def main(argv: list[str] | None = None) -> int:
             log.write(f"\n=== {stage} ({time.strftime('%Y-%m-%d %H:%M:%S')})\n")
             log.flush()
             t0 = time.perf_counter()
-            rc = subprocess.run(["dvc", "repro", "--force", "--single-item", stage], cwd=ROOT,
-                                stdout=log, stderr=subprocess.STDOUT).returncode
+            rc = subprocess.run(
+                ["dvc", "repro", "--force", "--single-item", stage], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT
+            ).returncode
             seconds = time.perf_counter() - t0
             if rc != 0:
                 print(f"bench_pipeline: stage {stage} failed (exit {rc}); its output is in {args.log}", file=sys.stderr)

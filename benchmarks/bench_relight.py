@@ -46,6 +46,7 @@ def _train_case(steps: int, size: int, threads: int, q) -> None:
     import statistics
 
     import torch
+
     torch.set_num_threads(threads)
     from pathlib import Path
 
@@ -74,7 +75,9 @@ def _train_case(steps: int, size: int, threads: int, q) -> None:
             opt.zero_grad(set_to_none=True)
             if i >= 2:
                 times[name].append(time.perf_counter() - t0)
-    q.put({k: {"s_per_step": statistics.median(v), "steps_per_min": 60 / statistics.median(v)} for k, v in times.items()})
+    q.put(
+        {k: {"s_per_step": statistics.median(v), "steps_per_min": 60 / statistics.median(v)} for k, v in times.items()}
+    )
 
 
 def _cycle(task):
@@ -86,6 +89,7 @@ def _cycle(task):
 
 def _decode_case(codec_kind: str, checkpoint: bool, size: int, threads: int, q) -> None:
     import torch
+
     torch.set_num_threads(threads)
     from pilight.diffusion.codec import PixelCodec, VaeCodec
 
@@ -93,10 +97,16 @@ def _decode_case(codec_kind: str, checkpoint: bool, size: int, threads: int, q) 
         codec = PixelCodec(4)
     else:
         from diffusers import AutoencoderKL
+
         tmp = tempfile.mkdtemp()
         torch.manual_seed(0)
-        AutoencoderKL(block_out_channels=(32, 64, 64, 64), down_block_types=("DownEncoderBlock2D",) * 4,
-                      up_block_types=("UpDecoderBlock2D",) * 4, latent_channels=4, norm_num_groups=32).save_pretrained(tmp)
+        AutoencoderKL(
+            block_out_channels=(32, 64, 64, 64),
+            down_block_types=("DownEncoderBlock2D",) * 4,
+            up_block_types=("UpDecoderBlock2D",) * 4,
+            latent_channels=4,
+            norm_num_groups=32,
+        ).save_pretrained(tmp)
         codec = VaeCodec(tmp)
     h = size // codec.factor
     z = torch.randn(6, codec.latent_channels, h, h, requires_grad=True)
@@ -106,8 +116,14 @@ def _decode_case(codec_kind: str, checkpoint: bool, size: int, threads: int, q) 
     loss = y.square().mean()
     held = _current_rss_mib() - base_now  # what the graph keeps between forward and backward
     loss.backward()
-    q.put({"peak_mib": _rss_mib() - base, "held_mib": held, "seconds": time.perf_counter() - t0,
-           "finite": bool(torch.isfinite(z.grad).all())})
+    q.put(
+        {
+            "peak_mib": _rss_mib() - base,
+            "held_mib": held,
+            "seconds": time.perf_counter() - t0,
+            "finite": bool(torch.isfinite(z.grad).all()),
+        }
+    )
 
 
 def _spawn(fn, *args):
@@ -128,23 +144,33 @@ def main() -> None:
     args = ap.parse_args()
     import torch
 
-    print(f"command: python benchmarks/bench_relight.py --steps {args.steps} --size {args.size} --threads {args.threads}")
+    print(
+        f"command: python benchmarks/bench_relight.py --steps {args.steps} --size {args.size} --threads {args.threads}"
+    )
     print(f"machine: CPU, torch {torch.__version__}, {args.threads} threads, {os.cpu_count()} logical cores (shared)\n")
     r = _spawn(_train_case, args.steps, args.size, args.threads)
-    print(f"| case (default relight params, pixel codec, 2 pairs x 3 branches, {args.size}^2; median of "
-          f"{args.steps} interleaved steps) | steps/min | s/step |")
+    print(
+        f"| case (default relight params, pixel codec, 2 pairs x 3 branches, {args.size}^2; median of "
+        f"{args.steps} interleaved steps) | steps/min | s/step |"
+    )
     print("|---|---|---|")
     for name in ("with", "without"):
         print(f"| train step, {name} physics terms | {r[name]['steps_per_min']:.1f} | {r[name]['s_per_step']:.2f} |")
-    print(f"\nphysics terms: {r['with']['s_per_step'] / r['without']['s_per_step']:.2f}x the time of a step without them\n")
-    print(f"| decode with gradients, 6 items at {args.size}^2 | checkpoint | held between fwd and bwd (MiB) | "
-          "peak RSS over baseline (MiB) | s (fwd+bwd) | grad finite |")
+    print(
+        f"\nphysics terms: {r['with']['s_per_step'] / r['without']['s_per_step']:.2f}x the time of a step without them\n"
+    )
+    print(
+        f"| decode with gradients, 6 items at {args.size}^2 | checkpoint | held between fwd and bwd (MiB) | "
+        "peak RSS over baseline (MiB) | s (fwd+bwd) | grad finite |"
+    )
     print("|---|---|---|---|---|---|")
     for kind in ("pixel", "vae"):
         for ck in (False, True):
             d = _spawn(_decode_case, kind, ck, args.size, args.threads)
             name = "pixel codec (factor 4)" if kind == "pixel" else "AutoencoderKL (32, 64, 64, 64), random init"
-            print(f"| {name} | {'on' if ck else 'off'} | {d['held_mib']:.0f} | {d['peak_mib']:.0f} | {d['seconds']:.2f} | {d['finite']} |")
+            print(
+                f"| {name} | {'on' if ck else 'off'} | {d['held_mib']:.0f} | {d['peak_mib']:.0f} | {d['seconds']:.2f} | {d['finite']} |"
+            )
     print(json.dumps({"train": r}))
 
 

@@ -52,8 +52,13 @@ def child(kind: str, mode: str, resolution: int, views: int, lights: int, repeat
                     dataset._render(handles["scene"], out)
                     n += 1
         per_bundle.append((time.perf_counter() - t0) / n)
-    return {"kind": kind, "mode": mode, "bundles": n * repeats, "s_per_bundle": statistics.median(per_bundle),
-            "objects": len(spec["objects"])}
+    return {
+        "kind": kind,
+        "mode": mode,
+        "bundles": n * repeats,
+        "s_per_bundle": statistics.median(per_bundle),
+        "objects": len(spec["objects"]),
+    }
 
 
 def main() -> None:
@@ -70,9 +75,26 @@ def main() -> None:
     rows = []
     for kind in ("object", "room"):
         for mode in ("beauty", "bundle"):
-            proc = subprocess.Popen([sys.executable, __file__, "--child", kind, mode, "--resolution", str(a.resolution),
-                                     "--views", str(a.views), "--lights", str(a.lights), "--repeats", str(a.repeats)],
-                                    stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+            proc = subprocess.Popen(
+                [
+                    sys.executable,
+                    __file__,
+                    "--child",
+                    kind,
+                    mode,
+                    "--resolution",
+                    str(a.resolution),
+                    "--views",
+                    str(a.views),
+                    "--lights",
+                    str(a.lights),
+                    "--repeats",
+                    str(a.repeats),
+                ],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.DEVNULL,
+                text=True,
+            )
             stdout = proc.stdout.read()
             _, status, usage = os.wait4(proc.pid, 0)
             if status:
@@ -80,15 +102,19 @@ def main() -> None:
             r = json.loads(next(l for l in stdout.splitlines() if l.startswith("RESULT "))[7:])
             r["peak_mb"] = usage.ru_maxrss / 1024  # Linux reports KiB
             rows.append(r)
-    print(f"\n{a.resolution}x{a.resolution}, 64 spp, adaptive threshold 0.02, {a.views} views x {a.lights} lights, "
-          f"{os.cpu_count()} cores, median of {a.repeats} passes\n")
+    print(
+        f"\n{a.resolution}x{a.resolution}, 64 spp, adaptive threshold 0.02, {a.views} views x {a.lights} lights, "
+        f"{os.cpu_count()} cores, median of {a.repeats} passes\n"
+    )
     print("| scene | mode | objects | s / bundle | bundles / min | peak RSS (MB) | bundle / beauty |")
     print("|---|---|---|---|---|---|---|")
     for r in rows:
         beauty = next(b for b in rows if b["kind"] == r["kind"] and b["mode"] == "beauty")
         per = r["s_per_bundle"]
         ratio = per / beauty["s_per_bundle"]
-        print(f"| {r['kind']} | {r['mode']} | {r['objects']} | {per:.3f} | {60 / per:.1f} | {r['peak_mb']:.0f} | {ratio:.2f}x |")
+        print(
+            f"| {r['kind']} | {r['mode']} | {r['objects']} | {per:.3f} | {60 / per:.1f} | {r['peak_mb']:.0f} | {ratio:.2f}x |"
+        )
 
 
 if __name__ == "__main__":

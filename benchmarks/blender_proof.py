@@ -50,28 +50,56 @@ AMBIENT = 0.02
 
 def point(distance: float) -> dict:
     d = LIGHT_DIR / np.linalg.norm(LIGHT_DIR)
-    power = 1000.0 * distance ** 2 / float(LIGHT_DIR @ LIGHT_DIR)
-    return {"points": [{"location": list(d * distance), "power": power, "radius": 0.1}], "hdri": None, "ambient": AMBIENT}
+    power = 1000.0 * distance**2 / float(LIGHT_DIR @ LIGHT_DIR)
+    return {
+        "points": [{"location": list(d * distance), "power": power, "radius": 0.1}],
+        "hdri": None,
+        "ambient": AMBIENT,
+    }
 
 
 def hdri(name: str, rotation: float) -> dict:
     return {"points": [], "hdri": {"name": name, "strength": 1.0, "rotation_deg": rotation}, "ambient": AMBIENT}
 
 
-LIGHTS = {"HDRI forest": hdri("forest", 30.0), "HDRI sunset": hdri("sunset", 0.0),
-          "point 100 m": point(100.0), "point 20 m": point(20.0)}
+LIGHTS = {
+    "HDRI forest": hdri("forest", 30.0),
+    "HDRI sunset": hdri("sunset", 0.0),
+    "point 100 m": point(100.0),
+    "point 20 m": point(20.0),
+}
 OBJECTS = {"sphere": "sphere", "Suzanne": "monkey"}
 
 
 def spec_for(shape: str, lights: list[dict]) -> dict:
-    mat = {"type": "principled", "base_color": {"const": [0.8, 0.8, 0.8]}, "roughness": {"const": 0.5},
-           "metallic": {"const": 0.0}}
-    obj = {"shape": shape, "location": [0.0, 0.0, 0.0], "rotation_deg": [0, 0, 0], "scale": 1.0,
-           "modifiers": [], "material": mat}
-    return {"id": SID, "split": "train", "index": 0, "kind": "object", "seed": 0, "cycles_seed": 7,
-            "objects": [obj], "assets": [], "backdrop": None, "target": [0.0, 0.0, 0.0],
-            "views": [{"location": [0.0, -5.0, 0.0], "target": [0.0, 0.0, 0.0], "lens_mm": 50.0}],
-            "lights": [lights]}
+    mat = {
+        "type": "principled",
+        "base_color": {"const": [0.8, 0.8, 0.8]},
+        "roughness": {"const": 0.5},
+        "metallic": {"const": 0.0},
+    }
+    obj = {
+        "shape": shape,
+        "location": [0.0, 0.0, 0.0],
+        "rotation_deg": [0, 0, 0],
+        "scale": 1.0,
+        "modifiers": [],
+        "material": mat,
+    }
+    return {
+        "id": SID,
+        "split": "train",
+        "index": 0,
+        "kind": "object",
+        "seed": 0,
+        "cycles_seed": 7,
+        "objects": [obj],
+        "assets": [],
+        "backdrop": None,
+        "target": [0.0, 0.0, 0.0],
+        "views": [{"location": [0.0, -5.0, 0.0], "target": [0.0, 0.0, 0.0], "lens_mm": 50.0}],
+        "lights": [lights],
+    }
 
 
 def erode(m: np.ndarray, r: int) -> np.ndarray:
@@ -92,9 +120,11 @@ def d_calc(ball: np.ndarray, normal: np.ndarray, flip_x: bool = False) -> np.nda
 
 def metrics(calc: np.ndarray, ref: np.ndarray, inner: np.ndarray) -> dict:
     c, r = calc[inner].astype(np.float64), ref[inner].astype(np.float64)
-    return {"psnr": 10 * np.log10(r.max() ** 2 / ((c - r) ** 2).mean()),
-            "rel": float((np.abs(c - r) / np.maximum(r, 1e-6)).mean()),
-            "bias": float((c - r).mean() / r.mean())}
+    return {
+        "psnr": 10 * np.log10(r.max() ** 2 / ((c - r) ** 2).mean()),
+        "rel": float((np.abs(c - r) / np.maximum(r, 1e-6)).mean()),
+        "bias": float((c - r).mean() / r.mean()),
+    }
 
 
 def render(shape: str, lights: dict, params: RenderParams, erode_px: int, cast_shadows: bool = True) -> list[dict]:
@@ -122,8 +152,16 @@ def render(shape: str, lights: dict, params: RenderParams, erode_px: int, cast_s
                 m = metrics(d_calc(ball, normal), ref, inner)
                 m["flip"] = metrics(d_calc(ball, normal, flip_x=True), ref, inner)["psnr"]
                 m["dd_only"] = metrics(d_calc(ball, normal), dd, inner)["psnr"]
-                rows.append({"object": shape, "light": name, "ball": kind, "pixels": int(inner.sum()),
-                             "di_over_dd": float(di[inner].mean() / dd[inner].mean()), **m})
+                rows.append(
+                    {
+                        "object": shape,
+                        "light": name,
+                        "ball": kind,
+                        "pixels": int(inner.sum()),
+                        "di_over_dd": float(di[inner].mean() / dd[inner].mean()),
+                        **m,
+                    }
+                )
     return rows
 
 
@@ -138,11 +176,19 @@ def main() -> None:
     args = ap.parse_args()
 
     def params(world_map: int) -> RenderParams:
-        return RenderParams.model_validate(dict(
-            resolution=args.resolution, scenes=dict(train=1, val=0, test=0), views_per_scene=1,
-            lights_per_view=len(LIGHTS), ball_resolution=args.ball_resolution, ball_samples=args.ball_samples,
-            cycles=dict(samples=args.samples, adaptive_threshold=0.0, adaptive_min_samples=0,
-                        world_map_resolution=world_map)))
+        return RenderParams.model_validate(
+            dict(
+                resolution=args.resolution,
+                scenes=dict(train=1, val=0, test=0),
+                views_per_scene=1,
+                lights_per_view=len(LIGHTS),
+                ball_resolution=args.ball_resolution,
+                ball_samples=args.ball_samples,
+                cycles=dict(
+                    samples=args.samples, adaptive_threshold=0.0, adaptive_min_samples=0, world_map_resolution=world_map
+                ),
+            )
+        )
 
     t0 = time.perf_counter()
     rows = []
@@ -161,15 +207,21 @@ def main() -> None:
 
     cmd = "python benchmarks/blender_proof.py " + " ".join(sys.argv[1:])
     print(f"\nCommand: `{cmd.strip()}`  ")
-    print(f"Image {args.resolution}^2 at {args.samples} spp, ball {args.ball_resolution}^2 at {args.ball_samples} spp "
-          f"(adaptive sampling off), world importance map {args.world_map}, mask eroded by {args.erode} px; "
-          f"Blender {_blender_version()}, {seconds:.0f} s.  Reference: Cycles Diffuse Direct + Indirect.\n")
-    print("| object | light | ball | PSNR (dB) | mean rel err | bias | PSNR vs Direct only (dB) | Indirect/Direct | PSNR x-flipped normals (dB) |")
+    print(
+        f"Image {args.resolution}^2 at {args.samples} spp, ball {args.ball_resolution}^2 at {args.ball_samples} spp "
+        f"(adaptive sampling off), world importance map {args.world_map}, mask eroded by {args.erode} px; "
+        f"Blender {_blender_version()}, {seconds:.0f} s.  Reference: Cycles Diffuse Direct + Indirect.\n"
+    )
+    print(
+        "| object | light | ball | PSNR (dB) | mean rel err | bias | PSNR vs Direct only (dB) | Indirect/Direct | PSNR x-flipped normals (dB) |"
+    )
     print("|---|---|---|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         ball = "Lambertian" if r["ball"] == "ball_lambertian" else "Principled r=0.5 (paper)"
-        print(f"| {r['object']} | {r['light']} | {ball} | {r['psnr']:.2f} | {r['rel']:.3f} | {r['bias']:+.3f} "
-              f"| {r['dd_only']:.2f} | {r['di_over_dd']:.3f} | {r['flip']:.2f} |")
+        print(
+            f"| {r['object']} | {r['light']} | {ball} | {r['psnr']:.2f} | {r['rel']:.3f} | {r['bias']:+.3f} "
+            f"| {r['dd_only']:.2f} | {r['di_over_dd']:.3f} | {r['flip']:.2f} |"
+        )
 
 
 def _blender_version() -> str:

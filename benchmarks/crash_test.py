@@ -35,12 +35,14 @@ import tempfile
 import time
 from pathlib import Path
 
-
 ROOT = Path(__file__).resolve().parents[1]
 STAGES = ["render", "shard", "train_intrinsics", "infer_intrinsics", "train_relight", "relight"]
 COMPARED = ["data/renders", "data/shards", "models/intrinsics", "data/intrinsics_pred", "models/relight", "data/relit"]
-PERSISTED = {"render": ["data/renders"], "train_intrinsics": ["checkpoints/intrinsics"],
-             "train_relight": ["checkpoints/relight"]}  # dvc.yaml's persist: true outputs
+PERSISTED = {
+    "render": ["data/renders"],
+    "train_intrinsics": ["checkpoints/intrinsics"],
+    "train_relight": ["checkpoints/relight"],
+}  # dvc.yaml's persist: true outputs
 
 
 def micro_project(d: Path) -> dict:
@@ -61,7 +63,9 @@ def digest(d: Path) -> dict[str, str]:
 
 def dvc(d: Path, env: dict, *args: str, log) -> tuple[int, float]:
     t0 = time.perf_counter()
-    rc = subprocess.run([sys.executable, "-m", "dvc", *args], cwd=d, env=env, stdout=log, stderr=subprocess.STDOUT).returncode
+    rc = subprocess.run(
+        [sys.executable, "-m", "dvc", *args], cwd=d, env=env, stdout=log, stderr=subprocess.STDOUT
+    ).returncode
     return rc, time.perf_counter() - t0
 
 
@@ -95,8 +99,14 @@ def main(argv: list[str] | None = None) -> int:
         for rel in PERSISTED.get(stage, []):
             shutil.rmtree(d / rel, ignore_errors=True)
         finished = False
-        proc = subprocess.Popen([sys.executable, "-m", "dvc", "repro", "--force", "--single-item", stage], cwd=d, env=env,
-                                stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "dvc", "repro", "--force", "--single-item", stage],
+            cwd=d,
+            env=env,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
         try:
             proc.wait(timeout=after)
             finished = True  # the stage ended before its kill time: this kill interrupted nothing
@@ -105,11 +115,13 @@ def main(argv: list[str] | None = None) -> int:
             proc.wait()
         rc, seconds = dvc(d, env, "repro", log=log)
         # what a clean run of the same stages costs: the killed stage and everything after it
-        redone = sum(clean[s] for s in [*STAGES, "evaluate", "trade", "render_trade"][STAGES.index(stage):])
+        redone = sum(clean[s] for s in [*STAGES, "evaluate", "trade", "render_trade"][STAGES.index(stage) :])
         same = rc == 0 and digest(d) == reference
         survived += same
         when = f"{after:.1f} s" + (" (it had ended)" if finished else "")
-        print(f"| {k} | {stage} | {when} | {rc} | {'yes' if same else 'NO'} | {seconds:.0f} | {redone:.0f} |", flush=True)
+        print(
+            f"| {k} | {stage} | {when} | {rc} | {'yes' if same else 'NO'} | {seconds:.0f} | {redone:.0f} |", flush=True
+        )
     print(f"survived {survived} of {args.kills} kills")
     return 0 if survived == args.kills else 1
 

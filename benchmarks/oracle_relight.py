@@ -36,11 +36,11 @@ from pathlib import Path
 import torch
 
 from pilight.data import schema
+from pilight.data.colour import tonemap01
 from pilight.data.shards import eval_dataset, make_loader
 from pilight.diffusion.codec import cell_mean, cell_smooth
 from pilight.eval.light_following import ChangeR2
 from pilight.eval.metrics import psnr_per_image, ssim_per_image
-from pilight.eval.relight import tonemap01
 from pilight.physics.calculated import diffuse_calculated, specular_calculated
 from pilight.physics.source_light import estimate_source_ball
 from pilight.physics.specular_model import specular_from_ball
@@ -67,23 +67,41 @@ def candidates(b: dict, c: dict) -> dict[str, torch.Tensor]:
     s_f = specular_calculated(b["ball_b"], lamb, N, mask, A, m)
     D, S, I_a = b["diffuse_b"].float(), b["specular_b"].float(), b["image_a"].float()
     s_ggx = specular_from_ball(lamb, N, c["roughness"], A, m) * mask
-    out = {"A D_calc": A * d_calc, "A D_calc + S_calc": A * d_calc + s_raw, "A D_calc + F S_calc": A * d_calc + s_f,
-           "A D_calc + S_ggx": A * d_calc + s_ggx, "A D_calc + S": A * d_calc + S, "A D + F S_calc": A * D + s_f,
-           "A D + S_ggx": A * D + s_ggx,
-           "A cell(D) + cell(S)": A * cell_gain(D, d_calc) + cell_gain(S, s_f),
-           "A D + cell(S)": A * D + cell_gain(S, s_f), "I_a cell(G)": cell_gain(b["image_b"].float(), I_a)}
+    out = {
+        "A D_calc": A * d_calc,
+        "A D_calc + S_calc": A * d_calc + s_raw,
+        "A D_calc + F S_calc": A * d_calc + s_f,
+        "A D_calc + S_ggx": A * d_calc + s_ggx,
+        "A D_calc + S": A * d_calc + S,
+        "A D + F S_calc": A * D + s_f,
+        "A D + S_ggx": A * D + s_ggx,
+        "A cell(D) + cell(S)": A * cell_gain(D, d_calc) + cell_gain(S, s_f),
+        "A D + cell(S)": A * D + cell_gain(S, s_f),
+        "I_a cell(G)": cell_gain(b["image_b"].float(), I_a),
+    }
     zero = torch.zeros_like(I_a)
     cs = lambda g: cell_smooth(cell_mean(g, CELL), CELL)
-    sources = {"effective": (b["ball_a"], b.get("ball_lambertian_a")),
-               "effective, SH source": (estimate_source_ball(I_a, A, N, mask, b["ball_a"].shape[-1], m), None),
-               "conditioning": (None, None)}
+    sources = {
+        "effective": (b["ball_a"], b.get("ball_lambertian_a")),
+        "effective, SH source": (estimate_source_ball(I_a, A, N, mask, b["ball_a"].shape[-1], m), None),
+        "conditioning": (None, None),
+    }
     settings = [(name, smooth, "lookup") for name in sources for smooth in (1, CELL)]
     settings += [(name, CELL, "ggx") for name in sources]
     for name, smooth, spec in settings:
         ball_a, lamb_a = sources[name]
-        anc = anchors(I_a, c, mask, b["ball_b"], b.get("ball_lambertian_b"), ball_a=ball_a, lambertian_a=lamb_a,
-                      albedo_source="conditioning" if name == "conditioning" else "effective", smooth_cell=smooth,
-                      specular=spec)
+        anc = anchors(
+            I_a,
+            c,
+            mask,
+            b["ball_b"],
+            b.get("ball_lambertian_b"),
+            ball_a=ball_a,
+            lambertian_a=lamb_a,
+            albedo_source="conditioning" if name == "conditioning" else "effective",
+            smooth_cell=smooth,
+            specular=spec,
+        )
         tag = f"PF {name}{', smoothed' if smooth > 1 else ''}{', GGX S' if spec == 'ggx' else ''}"
         g_d = gain_of(diffuse_target(b["image_b"], S, anc.albedo), anc.d_calc, anc.eps)
         g_s = gain_of(S, anc.s_calc, anc.eps)
@@ -107,7 +125,9 @@ def main(argv: list[str] | None = None) -> int:
     scores: dict[str, dict[str, dict]] = {s: {} for s in settings}
     pairs = 0
     for b in make_loader(eval_dataset(args.shards, args.split, "relight"), 8):
-        cross = torch.tensor([json.loads(a)["light"] != json.loads(c)["light"] for a, c in zip(b["meta_a"], b["meta_b"])])
+        cross = torch.tensor(
+            [json.loads(a)["light"] != json.loads(c)["light"] for a, c in zip(b["meta_a"], b["meta_b"])]
+        )
         if not cross.any():
             continue
         b = {k: (v[cross] if torch.is_tensor(v) else [x for x, keep in zip(v, cross) if keep]) for k, v in b.items()}
@@ -129,10 +149,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{'candidate':28s} {'r2 full':>8s} {'r2 mask':>8s} {'PSNR':>7s} {'SSIM':>6s}")
         for name, r in rows.items():
             r2 = r["r2"].compute()
-            row = {"change_r2_full": r2["full"], "change_r2_mask": r2["mask"],
-                   "psnr": float(torch.cat(r["psnr"]).mean()), "ssim": float(torch.cat(r["ssim"]).mean())}
+            row = {
+                "change_r2_full": r2["full"],
+                "change_r2_mask": r2["mask"],
+                "psnr": float(torch.cat(r["psnr"]).mean()),
+                "ssim": float(torch.cat(r["ssim"]).mean()),
+            }
             table.setdefault(setting, {})[name] = row
-            print(f"{name:28s} {row['change_r2_full']:8.3f} {row['change_r2_mask']:8.3f} {row['psnr']:7.2f} {row['ssim']:6.3f}")
+            print(
+                f"{name:28s} {row['change_r2_full']:8.3f} {row['change_r2_mask']:8.3f} {row['psnr']:7.2f} {row['ssim']:6.3f}"
+            )
     if args.json:
         args.json.write_text(json.dumps({"pairs": pairs, "split": args.split, "oracles": table}, indent=1) + "\n")
     return 0

@@ -71,7 +71,8 @@ def time_steps(task, p, batches: list, *, seed: int, profile: bool = False):
     step(batches[0])  # warm-up: allocator, first-call dispatch
     times, prof = [], None
     if profile:
-        from torch.profiler import ProfilerActivity, profile as torch_profile
+        from torch.profiler import ProfilerActivity
+        from torch.profiler import profile as torch_profile
 
         with torch_profile(activities=[ProfilerActivity.CPU]) as prof:
             for b in batches[1:]:
@@ -100,16 +101,21 @@ def main(argv: list[str] | None = None) -> int:
     for stage in stages:
         task, p = make_task(stage, args.params, args.shards, args.pred)
         batches, load_s = read_batches(task, args.steps + 1)
-        print(f"\n== {stage}: batch {p.train.batch_size}, {cores} threads; loader {1000 * load_s:.0f} ms/batch "
-              f"(read + decode, outside the step)")
+        print(
+            f"\n== {stage}: batch {p.train.batch_size}, {cores} threads; loader {1000 * load_s:.0f} ms/batch "
+            f"(read + decode, outside the step)"
+        )
         _, prof = time_steps(task, p, batches, seed=seed, profile=True)
         print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=args.top))
         rows = []
         for variant in ["baseline", *args.variants]:
             if variant == "no_physics" and stage != "relight":
                 continue
-            overrides = ({"lambda_ds": 0.0, "lambda_ps": 0.0, "lambda_rec": 0.0, "lambda_image": 0.0}
-                         if variant == "no_physics" else None)
+            overrides = (
+                {"lambda_ds": 0.0, "lambda_ps": 0.0, "lambda_rec": 0.0, "lambda_image": 0.0}
+                if variant == "no_physics"
+                else None
+            )
             task, p = make_task(stage, args.params, args.shards, args.pred, overrides)
             if variant == "channels_last":
                 task.trainable().to(memory_format=torch.channels_last)

@@ -52,76 +52,156 @@ class CliError(Exception):
 # --- arguments ---------------------------------------------------------------------------------
 def _light_options(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("light (repeat any of them: one output per light)")
-    g.add_argument("--light", action="append", default=[], metavar="NAME",
-                   help="a named direction: left | right | top | bottom | front")
-    g.add_argument("--azimuth", action="append", type=float, default=[], metavar="DEG",
-                   help="direction toward the light, camera space: 0 = from the camera, +90 = from the right, "
-                        "-90 = from the left, 180 = from behind the subject (pair with --elevation)")
-    g.add_argument("--elevation", action="append", type=float, default=[], metavar="DEG",
-                   help="0 = level with the camera, +90 = from straight above, -90 = from below "
-                        "(one for all --azimuth values, or one each)")
-    g.add_argument("--ball", action="append", type=Path, default=[], metavar="FILE",
-                   help="a gray light ball (rendered or photographed), cropped square, touching the borders")
-    g.add_argument("--hdri", action="append", type=Path, default=[], metavar="FILE",
-                   help="an equirectangular 2:1 panorama (.exr / .hdr linear; PNG/JPEG sRGB); its centre is "
-                        "straight ahead of the camera")
-    g.add_argument("--rotate", action="append", type=float, default=[], metavar="DEG",
-                   help="turn the HDRI about the vertical axis, clockwise seen from above; several values with one "
-                        "--hdri give one light each")
-    g.add_argument("--intensity", type=float, default=1.0,
-                   help="multiplies every light (1 = a directional light at the training data's typical level, "
-                        "or a ball/HDRI as stored)")
+    g.add_argument(
+        "--light",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="a named direction: left | right | top | bottom | front",
+    )
+    g.add_argument(
+        "--azimuth",
+        action="append",
+        type=float,
+        default=[],
+        metavar="DEG",
+        help="direction toward the light, camera space: 0 = from the camera, +90 = from the right, "
+        "-90 = from the left, 180 = from behind the subject (pair with --elevation)",
+    )
+    g.add_argument(
+        "--elevation",
+        action="append",
+        type=float,
+        default=[],
+        metavar="DEG",
+        help="0 = level with the camera, +90 = from straight above, -90 = from below "
+        "(one for all --azimuth values, or one each)",
+    )
+    g.add_argument(
+        "--ball",
+        action="append",
+        type=Path,
+        default=[],
+        metavar="FILE",
+        help="a gray light ball (rendered or photographed), cropped square, touching the borders",
+    )
+    g.add_argument(
+        "--hdri",
+        action="append",
+        type=Path,
+        default=[],
+        metavar="FILE",
+        help="an equirectangular 2:1 panorama (.exr / .hdr linear; PNG/JPEG sRGB); its centre is "
+        "straight ahead of the camera",
+    )
+    g.add_argument(
+        "--rotate",
+        action="append",
+        type=float,
+        default=[],
+        metavar="DEG",
+        help="turn the HDRI about the vertical axis, clockwise seen from above; several values with one "
+        "--hdri give one light each",
+    )
+    g.add_argument(
+        "--intensity",
+        type=float,
+        default=1.0,
+        help="multiplies every light (1 = a directional light at the training data's typical level, "
+        "or a ball/HDRI as stored)",
+    )
 
 
 def _model_options(p: argparse.ArgumentParser, stage: str) -> None:
-    what = ("stage 1; defaults: params.yaml's infer_intrinsics" if stage == "intrinsics" else
-            "stage 2; defaults: params.yaml's relight_infer (stage 1 runs with infer_intrinsics)")
+    what = (
+        "stage 1; defaults: params.yaml's infer_intrinsics"
+        if stage == "intrinsics"
+        else "stage 2; defaults: params.yaml's relight_infer (stage 1 runs with infer_intrinsics)"
+    )
     g = p.add_argument_group(f"model and sampling ({what}, or a saved pipeline's pipeline.json)")
-    g.add_argument("--models", type=Path, default=Path("models"),
-                   help="folder with intrinsics/ and relight/ (default: models, where `dvc repro` puts them)")
-    g.add_argument("--params", type=Path, default=Path("params.yaml"),
-                   help="params file for the defaults (ignored when it does not exist or --models holds pipeline.json)")
-    g.add_argument("--resolution", type=int, default=None, metavar="PX",
-                   help="processing size of the longer side, rounded to the models' size multiple, aspect kept "
-                        "(default: render.resolution, the training size; 0 = the photo's own size). Outputs are "
-                        "always at the photo's size")
+    g.add_argument(
+        "--models",
+        type=Path,
+        default=Path("models"),
+        help="folder with intrinsics/ and relight/ (default: models, where `dvc repro` puts them)",
+    )
+    g.add_argument(
+        "--params",
+        type=Path,
+        default=Path("params.yaml"),
+        help="params file for the defaults (ignored when it does not exist or --models holds pipeline.json)",
+    )
+    g.add_argument(
+        "--resolution",
+        type=int,
+        default=None,
+        metavar="PX",
+        help="processing size of the longer side, rounded to the models' size multiple, aspect kept "
+        "(default: render.resolution, the training size; 0 = the photo's own size). Outputs are "
+        "always at the photo's size",
+    )
     g.add_argument("--mode", choices=("ddim", "single_step"), default=None, help="sampler")
     g.add_argument("--steps", type=int, default=None, help="DDIM steps (implies --mode ddim)")
     g.add_argument("--cfg", type=float, default=None, help="classifier-free guidance scale")
     g.add_argument("--ensemble", type=int, default=None, help="noise draws averaged per output")
     g.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda", "mps"))
-    g.add_argument("--max-memory", type=float, default=None, metavar="GIB",
-                   help="refuse photos whose processing would need more (default: 80%% of RAM, or of GPU memory)")
+    g.add_argument(
+        "--max-memory",
+        type=float,
+        default=None,
+        metavar="GIB",
+        help="refuse photos whose processing would need more (default: 80%% of RAM, or of GPU memory)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="pilight", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        prog="pilight", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     sub = ap.add_subparsers(dest="command", required=True)
-    d = sub.add_parser("decompose", help="albedo, normal, roughness, metallic of each photo",
-                       formatter_class=argparse.RawDescriptionHelpFormatter, description=__doc__)
+    d = sub.add_parser(
+        "decompose",
+        help="albedo, normal, roughness, metallic of each photo",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=__doc__,
+    )
     d.add_argument("photos", nargs="+", metavar="PHOTO", help="files, folders or quoted globs")
     d.add_argument("-o", "--out", type=Path, required=True, metavar="OUT")
     d.add_argument("--overwrite", action="store_true", help="redo outputs that are already complete")
     _model_options(d, "intrinsics")
-    r = sub.add_parser("relight", help="each photo under each light: relit image, D, S, contact sheet",
-                       formatter_class=argparse.RawDescriptionHelpFormatter, description=__doc__)
+    r = sub.add_parser(
+        "relight",
+        help="each photo under each light: relit image, D, S, contact sheet",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=__doc__,
+    )
     r.add_argument("photos", nargs="+", metavar="PHOTO", help="files, folders or quoted globs")
     r.add_argument("-o", "--out", type=Path, required=True, metavar="OUT")
     r.add_argument("--overwrite", action="store_true", help="redo outputs that are already complete")
     _light_options(r)
     _model_options(r, "relight")
-    b = sub.add_parser("ball", help="write the light ball each light spec makes (no model needed)",
-                       formatter_class=argparse.RawDescriptionHelpFormatter, description=__doc__)
+    b = sub.add_parser(
+        "ball",
+        help="write the light ball each light spec makes (no model needed)",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=__doc__,
+    )
     b.add_argument("-o", "--out", type=Path, required=True, metavar="OUT")
     b.add_argument("--size", type=int, default=256, help="ball image size in pixels")
     _light_options(b)
-    pr = sub.add_parser("profile", help="compose a profile overlay (e.g. profiles/paper.yaml) with params.yaml",
-                        description="Write BASE with PROFILE's keys over it, validated (pilight/profiles.py).")
+    pr = sub.add_parser(
+        "profile",
+        help="compose a profile overlay (e.g. profiles/paper.yaml) with params.yaml",
+        description="Write BASE with PROFILE's keys over it, validated (pilight/profiles.py).",
+    )
     pr.add_argument("profile", type=Path, metavar="PROFILE", help="the overlay: only the keys that differ")
     pr.add_argument("-o", "--out", type=Path, required=True, help="the composed params file (may be BASE itself)")
     pr.add_argument("--base", type=Path, default=Path("params.yaml"), help="default: params.yaml")
-    pr.add_argument("--no-check-paths", action="store_true",
-                    help="do not require the weight folders (codec, unet, CLIP, DINOv2 paths) to exist here")
+    pr.add_argument(
+        "--no-check-paths",
+        action="store_true",
+        help="do not require the weight folders (codec, unet, CLIP, DINOv2 paths) to exist here",
+    )
     return ap
 
 
@@ -162,8 +242,10 @@ def output_names(photos: list[Path]) -> dict[Path, str]:
     clash = {n: ps for n, ps in by_name.items() if len(ps) > 1}
     if clash:
         n, ps = next(iter(clash.items()))
-        raise CliError(f"{', '.join(map(str, ps))}: these photos would all write OUT/{n}/; rename one, or run them "
-                       "with different -o folders")
+        raise CliError(
+            f"{', '.join(map(str, ps))}: these photos would all write OUT/{n}/; rename one, or run them "
+            "with different -o folders"
+        )
     return {p: p.stem for p in photos}
 
 
@@ -210,8 +292,11 @@ def decompose_files(folder: Path) -> list[Path]:
 
 
 def relight_files(folder: Path, branches) -> list[Path]:
-    return ([folder / f"{b}.{ext}" for b in branches for ext in ("exr", "png")]
-            + [folder / "ball.exr", folder / "ball.png", folder / "contact.png"])
+    return [folder / f"{b}.{ext}" for b in branches for ext in ("exr", "png")] + [
+        folder / "ball.exr",
+        folder / "ball.png",
+        folder / "contact.png",
+    ]
 
 
 # --- several processes ------------------------------------------------------------------------------
@@ -239,7 +324,7 @@ def _my_share(photos: list[Path], state) -> list[Path]:
 # --- commands --------------------------------------------------------------------------------------
 def _pipeline(args, stage: str, state=None):
     from pilight.params import ParamsError
-    from pilight.pipeline import PILightPipeline, PipelineError, PIPELINE_FILE
+    from pilight.pipeline import PIPELINE_FILE, PILightPipeline, PipelineError
 
     if args.resolution is not None and args.resolution < 0:
         raise CliError(f"--resolution must be >= 0 (0 = the photo's own size), got {args.resolution}", 2)
@@ -269,15 +354,25 @@ def _pipeline(args, stage: str, state=None):
             stale = {}
         for s, keys in stale.items():
             shown = ", ".join(keys[:5]) + (f" and {len(keys) - 5} more" if len(keys) > 5 else "")
-            print(f"pilight: warning: {args.models / s} was trained with other values of {shown} than "
-                  f"{args.params} now holds; `dvc repro train_relight` retrains it (the saved model is used as is)",
-                  file=sys.stderr)
+            print(
+                f"pilight: warning: {args.models / s} was trained with other values of {shown} than "
+                f"{args.params} now holds; `dvc repro train_relight` retrains it (the saved model is used as is)",
+                file=sys.stderr,
+            )
     from dataclasses import replace
 
     key = "intrinsics_sampling" if stage == "intrinsics" else "relight_sampling"
     sp = getattr(pipe.config, key)
-    update = {k: v for k, v in (("steps", args.steps), ("cfg_scale", args.cfg), ("ensemble", args.ensemble),
-                                ("mode", args.mode or ("ddim" if args.steps is not None else None))) if v is not None}
+    update = {
+        k: v
+        for k, v in (
+            ("steps", args.steps),
+            ("cfg_scale", args.cfg),
+            ("ensemble", args.ensemble),
+            ("mode", args.mode or ("ddim" if args.steps is not None else None)),
+        )
+        if v is not None
+    }
     pipe.config = replace(pipe.config, **{key: sp.model_copy(update=update)})
     if args.resolution is not None:
         pipe.config = replace(pipe.config, processing_resolution=args.resolution)
@@ -290,7 +385,7 @@ def _check_photos(pipe, photos: list[Path], lights: int, max_memory_gib: float |
     from pilight.pipeline import MemoryLimitError
 
     errors = []
-    limit = None if max_memory_gib is None else max_memory_gib * 1024 ** 3
+    limit = None if max_memory_gib is None else max_memory_gib * 1024**3
     for p in photos:
         try:
             h, w = probe(p)  # the header only: nothing of the pixels is allocated yet
@@ -307,8 +402,14 @@ def _progress(total: int, desc: str, state=None):
 
     if state is not None:
         desc = f"{desc} [process {state.process_index}/{state.num_processes}]"
-    return tqdm(total=total, desc=desc, unit="photo", dynamic_ncols=True, file=sys.stderr,
-                position=0 if state is None else state.process_index)
+    return tqdm(
+        total=total,
+        desc=desc,
+        unit="photo",
+        dynamic_ncols=True,
+        file=sys.stderr,
+        position=0 if state is None else state.process_index,
+    )
 
 
 def _done_together(state) -> None:
@@ -328,8 +429,11 @@ def cmd_decompose(args) -> int:
     mine = _my_share(photos, state)
     todo = [p for p in mine if args.overwrite or not _complete(decompose_files(args.out / names[p]))]
     if len(todo) < len(mine):
-        print(f"pilight: {len(mine) - len(todo)} photo(s) already decomposed in {args.out}, skipped "
-              "(--overwrite redoes them)", file=sys.stderr)
+        print(
+            f"pilight: {len(mine) - len(todo)} photo(s) already decomposed in {args.out}, skipped "
+            "(--overwrite redoes them)",
+            file=sys.stderr,
+        )
     failed = 0
     with _progress(len(todo), "decompose", state) as bar:
         for p in todo:
@@ -343,10 +447,16 @@ def cmd_decompose(args) -> int:
                 continue
             folder = args.out / names[p]
             a = d.mask
-            files = {folder / "albedo.exr": d.albedo, folder / "albedo.png": linear_to_srgb8(d.albedo, a),
-                     folder / "normal.exr": d.normal, folder / "normal.png": normal_preview(d.normal, a),
-                     folder / "roughness.exr": d.roughness, folder / "roughness.png": linear_to_srgb8(d.roughness, a),
-                     folder / "metallic.exr": d.metallic, folder / "metallic.png": linear_to_srgb8(d.metallic, a)}
+            files = {
+                folder / "albedo.exr": d.albedo,
+                folder / "albedo.png": linear_to_srgb8(d.albedo, a),
+                folder / "normal.exr": d.normal,
+                folder / "normal.png": normal_preview(d.normal, a),
+                folder / "roughness.exr": d.roughness,
+                folder / "roughness.png": linear_to_srgb8(d.roughness, a),
+                folder / "metallic.exr": d.metallic,
+                folder / "metallic.png": linear_to_srgb8(d.metallic, a),
+            }
             _write_or_fail(files, folder)
             bar.set_postfix_str(f"{p.name} at {d.processing_size[1]}x{d.processing_size[0]}")
             bar.update(1)
@@ -359,15 +469,18 @@ def _write_or_fail(files, folder: Path) -> None:
     try:
         write_group(files)
     except OSError as exc:
-        raise CliError(f"{folder}: cannot write outputs ({exc.strerror or exc}); nothing of this photo was kept") from None
+        raise CliError(
+            f"{folder}: cannot write outputs ({exc.strerror or exc}); nothing of this photo was kept"
+        ) from None
 
 
 def contact_sheet(photo_rgb, ball, relit):
-    """input | light ball | relit, side by side at most CONTACT_HEIGHT tall (sRGB uint8)."""
+    """input | light ball | relit, side by side at most CONTACT_HEIGHT tall, 4 white pixels apart (sRGB uint8)."""
     import numpy as np
     import torch
     import torch.nn.functional as F
 
+    from pilight.eval.grids import labelled_grid
     from pilight.photo import linear_to_srgb8
 
     h, w = photo_rgb.shape[:2]
@@ -379,17 +492,21 @@ def contact_sheet(photo_rgb, ball, relit):
         t = F.interpolate(t, size=size, mode="bilinear", align_corners=False, antialias=True)
         return t[0].permute(1, 2, 0).numpy()
 
-    gap = np.full((th, 4, 3), 255, np.uint8)
-    return np.concatenate([linear_to_srgb8(fit(photo_rgb, (th, tw))), gap, linear_to_srgb8(fit(ball, (th, th))), gap,
-                           linear_to_srgb8(fit(relit, (th, tw)))], axis=1)
+    tiles = [
+        linear_to_srgb8(fit(photo_rgb, (th, tw))),
+        linear_to_srgb8(fit(ball, (th, th))),
+        linear_to_srgb8(fit(relit, (th, tw))),
+    ]
+    return labelled_grid([tiles], None, gap=4, margin=0, tight=True)
 
 
 def _lights(args, size: int):
     from pilight.lights import LightError, parse_lights
 
     try:
-        return parse_lights(args.light, args.azimuth, args.elevation, args.ball, args.hdri, args.rotate,
-                            args.intensity, size)
+        return parse_lights(
+            args.light, args.azimuth, args.elevation, args.ball, args.hdri, args.rotate, args.intensity, size
+        )
     except LightError as exc:
         raise CliError(str(exc), 2) from None
 
@@ -406,13 +523,18 @@ def cmd_relight(args) -> int:
     pipe = _pipeline(args, "relight", state)
     _check_photos(pipe, photos, len(lights), args.max_memory)
     branches = pipe.relight_task.branches
-    pending = {p: [l for l in lights if args.overwrite or not _complete(relight_files(args.out / names[p] / l.name, branches))]
-               for p in _my_share(photos, state)}
+    pending = {
+        p: [l for l in lights if args.overwrite or not _complete(relight_files(args.out / names[p] / l.name, branches))]
+        for p in _my_share(photos, state)
+    }
     todo = [p for p in pending if pending[p]]
     skipped = sum(len(lights) - len(v) for v in pending.values())
     if skipped:
-        print(f"pilight: {skipped} (photo, light) output(s) already complete in {args.out}, skipped "
-              "(--overwrite redoes them)", file=sys.stderr)
+        print(
+            f"pilight: {skipped} (photo, light) output(s) already complete in {args.out}, skipped "
+            "(--overwrite redoes them)",
+            file=sys.stderr,
+        )
     failed = 0
     with _progress(len(todo), f"relight x{len(lights)} light(s)", state) as bar:
         for p in todo:
@@ -433,7 +555,9 @@ def cmd_relight(args) -> int:
                     files[folder / f"{b}.png"] = linear_to_srgb8(arr)
                 files[folder / "ball.exr"] = out.balls[i]
                 files[folder / "ball.png"] = ball_preview(light.ball)
-                files[folder / "contact.png"] = contact_sheet(photo.rgb, light.ball.permute(1, 2, 0).numpy(), out.relit[i])
+                files[folder / "contact.png"] = contact_sheet(
+                    photo.rgb, light.ball.permute(1, 2, 0).numpy(), out.relit[i]
+                )
                 _write_or_fail(files, folder)
             bar.set_postfix_str(p.name)
             bar.update(1)
@@ -450,8 +574,13 @@ def cmd_ball(args) -> int:
     lights = _lights(args, args.size)
     check_writable(args.out)
     for light in lights:
-        _write_or_fail({args.out / f"{light.name}.exr": light.ball.permute(1, 2, 0).numpy(),
-                        args.out / f"{light.name}.png": ball_preview(light.ball)}, args.out)
+        _write_or_fail(
+            {
+                args.out / f"{light.name}.exr": light.ball.permute(1, 2, 0).numpy(),
+                args.out / f"{light.name}.png": ball_preview(light.ball),
+            },
+            args.out,
+        )
         print(f"{args.out / light.name}.png  {light.description}")
     return 0
 
@@ -471,14 +600,17 @@ def cmd_profile(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return {"decompose": cmd_decompose, "relight": cmd_relight, "ball": cmd_ball,
-                "profile": cmd_profile}[args.command](args)
+        return {"decompose": cmd_decompose, "relight": cmd_relight, "ball": cmd_ball, "profile": cmd_profile}[
+            args.command
+        ](args)
     except CliError as exc:
         print(f"pilight {args.command}: {exc}", file=sys.stderr)
         return exc.code
     except KeyboardInterrupt:
-        print(f"pilight {args.command}: interrupted; outputs written so far are complete, rerun to continue",
-              file=sys.stderr)
+        print(
+            f"pilight {args.command}: interrupted; outputs written so far are complete, rerun to continue",
+            file=sys.stderr,
+        )
         return 130
 
 

@@ -77,24 +77,34 @@ def direction(azimuth_deg: float, elevation_deg: float) -> torch.Tensor:
     return torch.tensor([math.cos(e) * math.sin(a), math.sin(e), math.cos(e) * math.cos(a)], dtype=torch.float32)
 
 
-def directional(azimuth_deg: float, elevation_deg: float, intensity: float = 1.0, size: int = BALL_SIZE,
-                name: str | None = None) -> Light:
+def directional(
+    azimuth_deg: float, elevation_deg: float, intensity: float = 1.0, size: int = BALL_SIZE, name: str | None = None
+) -> Light:
     from pilight.physics import ball_from_direction
 
     _check_intensity(intensity)
     if not (math.isfinite(azimuth_deg) and math.isfinite(elevation_deg)):
         raise LightError(f"azimuth/elevation must be finite, got {azimuth_deg}, {elevation_deg}")
-    ball = ball_from_direction(direction(azimuth_deg, elevation_deg), intensity=DIRECT_LEVEL * intensity,
-                               ambient=AMBIENT * intensity, size=size)[0]
+    ball = ball_from_direction(
+        direction(azimuth_deg, elevation_deg),
+        intensity=DIRECT_LEVEL * intensity,
+        ambient=AMBIENT * intensity,
+        size=size,
+    )[0]
     label = name or f"az{azimuth_deg:g}_el{elevation_deg:g}"
-    return Light(_safe(label + _suffix(intensity)), ball,
-                 f"distant light, azimuth {azimuth_deg:g} deg, elevation {elevation_deg:g} deg, intensity {intensity:g}")
+    return Light(
+        _safe(label + _suffix(intensity)),
+        ball,
+        f"distant light, azimuth {azimuth_deg:g} deg, elevation {elevation_deg:g} deg, intensity {intensity:g}",
+    )
 
 
 def named(name: str, intensity: float = 1.0, size: int = BALL_SIZE) -> Light:
     if name not in NAMED:
-        raise LightError(f"unknown light {name!r}; choose one of {'|'.join(NAMED)}, or give --azimuth/--elevation, "
-                         "--ball FILE or --hdri FILE")
+        raise LightError(
+            f"unknown light {name!r}; choose one of {'|'.join(NAMED)}, or give --azimuth/--elevation, "
+            "--ball FILE or --hdri FILE"
+        )
     return directional(*NAMED[name], intensity=intensity, size=size, name=name)
 
 
@@ -113,8 +123,11 @@ def from_ball(ball, intensity: float = 1.0, size: int = BALL_SIZE, name: str = "
         raise LightError(f"{name}: the light ball is {w}x{h}; crop it square, the ball touching all four borders")
     t = torch.from_numpy(photo.rgb).permute(2, 0, 1)[None]
     t = F.interpolate(t, size=(size, size), mode="bilinear", align_corners=False, antialias=True)[0]
-    return Light(_safe(f"ball-{Path(name).stem}{_suffix(intensity)}"), (t * _disk(size) * intensity).contiguous(),
-                 f"light ball {name}, intensity {intensity:g}")
+    return Light(
+        _safe(f"ball-{Path(name).stem}{_suffix(intensity)}"),
+        (t * _disk(size) * intensity).contiguous(),
+        f"light ball {name}, intensity {intensity:g}",
+    )
 
 
 def from_ball_file(path: str | Path, intensity: float = 1.0, size: int = BALL_SIZE) -> Light:
@@ -137,8 +150,9 @@ def hdri_world_to_camera(rotate_deg: float) -> torch.Tensor:
     return _WORLD_TO_CAMERA @ rz
 
 
-def from_hdri(hdri, rotate_deg: float = 0.0, intensity: float = 1.0, size: int = BALL_SIZE,
-              name: str = "hdri") -> Light:
+def from_hdri(
+    hdri, rotate_deg: float = 0.0, intensity: float = 1.0, size: int = BALL_SIZE, name: str = "hdri"
+) -> Light:
     """An equirectangular panorama (H, W, 3) linear (or anything ``photo.as_photo`` takes) -> Light."""
     from pilight.physics import ball_from_hdri
 
@@ -148,13 +162,18 @@ def from_hdri(hdri, rotate_deg: float = 0.0, intensity: float = 1.0, size: int =
     photo = as_photo(hdri, name)
     h, w = photo.size
     if w != 2 * h:
-        raise LightError(f"{name}: {w}x{h} is not an equirectangular (lat-long) panorama; its width must be exactly "
-                         "twice its height (2:1)")
+        raise LightError(
+            f"{name}: {w}x{h} is not an equirectangular (lat-long) panorama; its width must be exactly "
+            "twice its height (2:1)"
+        )
     t = torch.from_numpy(photo.rgb).permute(2, 0, 1) * intensity
     ball = ball_from_hdri(t, hdri_world_to_camera(rotate_deg), size=size)[0]
     rot = "" if rotate_deg == 0 else f"_rot{rotate_deg:g}"
-    return Light(_safe(f"hdri-{Path(name).stem}{rot}{_suffix(intensity)}"), ball.contiguous(),
-                 f"HDRI {name}, rotated {rotate_deg:g} deg, intensity {intensity:g}")
+    return Light(
+        _safe(f"hdri-{Path(name).stem}{rot}{_suffix(intensity)}"),
+        ball.contiguous(),
+        f"HDRI {name}, rotated {rotate_deg:g} deg, intensity {intensity:g}",
+    )
 
 
 def from_hdri_file(path: str | Path, rotate_deg: float = 0.0, intensity: float = 1.0, size: int = BALL_SIZE) -> Light:
@@ -174,8 +193,9 @@ def _pair(values: list[float], others: list, what: str, other: str) -> list[floa
     raise LightError(f"{len(values)} {what} value(s) for {len(others)} {other}: give one for all, or one each")
 
 
-def parse_lights(names=(), azimuths=(), elevations=(), balls=(), hdris=(), rotates=(), intensity: float = 1.0,
-                 size: int = BALL_SIZE) -> list[Light]:
+def parse_lights(
+    names=(), azimuths=(), elevations=(), balls=(), hdris=(), rotates=(), intensity: float = 1.0, size: int = BALL_SIZE
+) -> list[Light]:
     """The CLI's light options -> lights, in the order: names, directions, balls, HDRIs.
 
     One --hdri with several --rotate gives one light per rotation (a turning environment)."""
@@ -205,8 +225,9 @@ def parse_lights(names=(), azimuths=(), elevations=(), balls=(), hdris=(), rotat
                     raise LightError(f"--hdri {exc}") from None
             lights.append(from_hdri(panoramas[path], r, intensity, size, name=str(path)))
     if not lights:
-        raise LightError("no light given: use --light left|right|top|bottom|front, --azimuth/--elevation, "
-                         "--ball FILE or --hdri FILE")
+        raise LightError(
+            "no light given: use --light left|right|top|bottom|front, --azimuth/--elevation, --ball FILE or --hdri FILE"
+        )
     seen: dict[str, int] = {}
     for light in lights:
         seen[light.name] = seen.get(light.name, 0) + 1

@@ -50,13 +50,15 @@ class Photo:
 
 # --- colour -------------------------------------------------------------------------------
 def srgb_to_linear(y: np.ndarray) -> np.ndarray:
-    y = np.clip(np.asarray(y, dtype=np.float32), 0.0, 1.0)
-    return np.where(y <= 0.04045, y / 12.92, ((y + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    """Stored sRGB values in [0, 1] -> linear float32 (clipped first: the curve's domain)."""
+    from pilight.data.colour import srgb_to_linear as curve
+
+    return curve(np.clip(np.asarray(y, dtype=np.float32), 0.0, 1.0)).astype(np.float32)
 
 
 def linear_to_srgb8(x: np.ndarray, alpha: np.ndarray | None = None) -> np.ndarray:
     """Linear values (clipped at 1) -> sRGB uint8 (H, W, 3), or (H, W, 4) with ``alpha`` (H, W) in [0, 1]."""
-    from pilight.data.schema import srgb_preview
+    from pilight.data.colour import srgb_preview
 
     x = np.asarray(x, dtype=np.float32)
     if x.ndim == 2:
@@ -96,7 +98,6 @@ def probe(path: str | Path) -> tuple[int, int]:
         if suffix == ".hdr":
             with open(path, "rb") as f:
                 return _hdr_header(f, path)[:2]
-        from PIL import Image
 
         with _open_pil(path) as im:
             w, h = im.size
@@ -125,9 +126,16 @@ def _orientation(im) -> int:
 
 def orient(a: np.ndarray, orientation: int) -> np.ndarray:
     """Turn a stored (H, W, C) array the way EXIF ``orientation`` (1..8) says a viewer shows it."""
-    ops = {1: lambda x: x, 2: lambda x: x[:, ::-1], 3: lambda x: x[::-1, ::-1], 4: lambda x: x[::-1],
-           5: lambda x: x.transpose(1, 0, 2), 6: lambda x: np.rot90(x, -1), 7: lambda x: x[::-1, ::-1].transpose(1, 0, 2),
-           8: lambda x: np.rot90(x, 1)}
+    ops = {
+        1: lambda x: x,
+        2: lambda x: x[:, ::-1],
+        3: lambda x: x[::-1, ::-1],
+        4: lambda x: x[::-1],
+        5: lambda x: x.transpose(1, 0, 2),
+        6: lambda x: np.rot90(x, -1),
+        7: lambda x: x[::-1, ::-1].transpose(1, 0, 2),
+        8: lambda x: np.rot90(x, 1),
+    }
     return np.ascontiguousarray(ops.get(orientation, ops[1])(a))
 
 
@@ -221,15 +229,19 @@ def as_photo(image, name: str = "<array>") -> Photo:
         return read_photo(image)
     try:
         from PIL import Image
+
         if isinstance(image, Image.Image):
             a = _pil_array(image, Path(name))
             if a.dtype == np.float32:
                 return _from_channels(a, linear=True, name=name)
-            return _from_channels(a.astype(np.float32) / (65535.0 if a.dtype == np.uint16 else 255.0), linear=False, name=name)
+            return _from_channels(
+                a.astype(np.float32) / (65535.0 if a.dtype == np.uint16 else 255.0), linear=False, name=name
+            )
     except ImportError:
         pass
     try:
         import torch
+
         if isinstance(image, torch.Tensor):
             t = image.detach().cpu()
             if t.ndim == 4 and t.shape[0] == 1:
@@ -266,15 +278,18 @@ def _png16(path: Path) -> np.ndarray | None:
         return None
     pos, idat, ihdr = 8, [], None
     while pos + 8 <= len(data):
-        length, kind = struct.unpack(">I4s", data[pos:pos + 8])
-        body = data[pos + 8:pos + 8 + length]
+        length, kind = struct.unpack(">I4s", data[pos : pos + 8])
+        body = data[pos + 8 : pos + 8 + length]
         if kind == b"IHDR":
             ihdr = struct.unpack(">IIBBBBB", body)
             if ihdr[2] != 16 or ihdr[3] not in _PNG_CHANNELS:
                 return None
             if ihdr[6] != 0:
-                warnings.warn(f"{path}: interlaced 16-bit PNG is read at 8 bits per channel (Pillow); "
-                              "save it without interlacing to keep 16 bits", stacklevel=3)
+                warnings.warn(
+                    f"{path}: interlaced 16-bit PNG is read at 8 bits per channel (Pillow); "
+                    "save it without interlacing to keep 16 bits",
+                    stacklevel=3,
+                )
                 return None
         elif kind == b"IDAT":
             idat.append(body)
@@ -347,8 +362,11 @@ def _tiff16_raw(im, path: Path) -> np.ndarray | None:
     codec = im.tile[0][0]
     c = 4 if str(rawmode).startswith("RGBA") else 3
     if codec != "raw" or any(t[0] != "raw" for t in im.tile):
-        warnings.warn(f"{path}: compressed 16-bit TIFF is read at 8 bits per channel (Pillow); save it "
-                      "uncompressed or as a 16-bit PNG to keep 16 bits", stacklevel=3)
+        warnings.warn(
+            f"{path}: compressed 16-bit TIFF is read at 8 bits per channel (Pillow); save it "
+            "uncompressed or as a 16-bit PNG to keep 16 bits",
+            stacklevel=3,
+        )
         return None
     dtype = ">u2" if str(rawmode).endswith("B") else "<u2"
     w, h = im.size
@@ -385,8 +403,10 @@ def _hdr_header(f, path: Path) -> tuple[int, int, bool]:
         raise PhotoError(f"{path}: Radiance format {fmt.decode(errors='replace')}; only 32-bit_rle_rgbe is read")
     res = f.readline().split()
     if len(res) != 4 or res[0] != b"-Y" or res[2] not in (b"+X", b"-X"):
-        raise PhotoError(f"{path}: Radiance resolution line {b' '.join(res).decode(errors='replace')!r}; "
-                         "only the standard '-Y H +X W' is read")
+        raise PhotoError(
+            f"{path}: Radiance resolution line {b' '.join(res).decode(errors='replace')!r}; "
+            "only the standard '-Y H +X W' is read"
+        )
     return int(res[1]), int(res[3]), res[2] == b"-X"
 
 
@@ -399,7 +419,7 @@ def read_hdr(path: str | Path) -> np.ndarray:
     rgbe = np.zeros((h, w, 4), np.uint8)
     pos = 0
     for y in range(h):
-        if 8 <= w < 32768 and data[pos:pos + 2] == b"\x02\x02" and (data[pos + 2] << 8 | data[pos + 3]) == w:
+        if 8 <= w < 32768 and data[pos : pos + 2] == b"\x02\x02" and (data[pos + 2] << 8 | data[pos + 3]) == w:
             pos += 4
             for ch in range(4):  # new-style RLE: each channel of the scanline on its own
                 x = 0
@@ -410,10 +430,10 @@ def read_hdr(path: str | Path) -> np.ndarray:
                     pos += 1
                     if n > 128:
                         n -= 128
-                        rgbe[y, x:x + n, ch] = data[pos]
+                        rgbe[y, x : x + n, ch] = data[pos]
                         pos += 1
                     else:
-                        rgbe[y, x:x + n, ch] = np.frombuffer(data, np.uint8, n, pos)
+                        rgbe[y, x : x + n, ch] = np.frombuffer(data, np.uint8, n, pos)
                         pos += n
                     x += n
         else:  # flat scanline

@@ -24,9 +24,10 @@ from __future__ import annotations
 
 import json
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -34,13 +35,13 @@ import torch.nn.functional as F
 
 from pilight import atomic
 from pilight.lights import Light
-from pilight.photo import Photo, as_photo, check_size, lcm, processing_size
 from pilight.params import DOMAINS, SamplingParams
+from pilight.photo import Photo, as_photo, check_size, lcm, processing_size
 
 PIPELINE_FILE = "pipeline.json"
 STAGES = ("intrinsics", "relight")
 DEFAULT_RESOLUTION = 128  # the embedded default's render.resolution, used when no params.yaml says otherwise
-GIB = 1024 ** 3
+GIB = 1024**3
 
 # Memory estimate: the UNet's activations per batch item are ACT_FLOATS_PER_CHANNEL_PIXEL floats
 # per (channel x latent pixel) summed over its levels, and the full-size arrays of a photo (decoded
@@ -73,24 +74,31 @@ class PipelineConfig:
     relight_sampling: SamplingParams = SamplingParams(mode="single_step", cfg_scale=1.5)
 
     def to_json(self) -> dict:
-        return {"processing_resolution": self.processing_resolution, "ball_resolution": self.ball_resolution,
-                "seed": self.seed, "intrinsics_sampling": self.intrinsics_sampling.model_dump(mode="json"),
-                "relight_sampling": self.relight_sampling.model_dump(mode="json")}
+        return {
+            "processing_resolution": self.processing_resolution,
+            "ball_resolution": self.ball_resolution,
+            "seed": self.seed,
+            "intrinsics_sampling": self.intrinsics_sampling.model_dump(mode="json"),
+            "relight_sampling": self.relight_sampling.model_dump(mode="json"),
+        }
 
     @classmethod
-    def from_json(cls, d: dict, where: str) -> "PipelineConfig":
+    def from_json(cls, d: dict, where: str) -> PipelineConfig:
         from pydantic import ValidationError
 
         try:
-            return cls(processing_resolution=int(d["processing_resolution"]), ball_resolution=int(d["ball_resolution"]),
-                       seed=int(d["seed"]),
-                       intrinsics_sampling=SamplingParams.model_validate(d["intrinsics_sampling"]),
-                       relight_sampling=SamplingParams.model_validate(d["relight_sampling"]))
+            return cls(
+                processing_resolution=int(d["processing_resolution"]),
+                ball_resolution=int(d["ball_resolution"]),
+                seed=int(d["seed"]),
+                intrinsics_sampling=SamplingParams.model_validate(d["intrinsics_sampling"]),
+                relight_sampling=SamplingParams.model_validate(d["relight_sampling"]),
+            )
         except (KeyError, TypeError, ValueError, ValidationError) as exc:
             raise PipelineError(f"{where}: not a valid pipeline config ({exc})") from None
 
     @classmethod
-    def from_params(cls, params_path: str | Path) -> "PipelineConfig":
+    def from_params(cls, params_path: str | Path) -> PipelineConfig:
         """The defaults a DVC checkout implies: base.seed, render.resolution / ball_resolution,
         infer_intrinsics and relight_infer (sampling). ParamsError when the file is invalid."""
         from pilight.params import load_section
@@ -98,19 +106,23 @@ class PipelineConfig:
         base, render = load_section("base", params_path), load_section("render", params_path)
         ii, ri = load_section("infer_intrinsics", params_path), load_section("relight_infer", params_path)
         keep = set(SamplingParams.model_fields)
-        return cls(processing_resolution=render.resolution, ball_resolution=render.ball_resolution, seed=base.seed,
-                   intrinsics_sampling=SamplingParams(**{k: getattr(ii, k) for k in keep}),
-                   relight_sampling=SamplingParams(**{k: getattr(ri, k) for k in keep}))
+        return cls(
+            processing_resolution=render.resolution,
+            ball_resolution=render.ball_resolution,
+            seed=base.seed,
+            intrinsics_sampling=SamplingParams(**{k: getattr(ii, k) for k in keep}),
+            relight_sampling=SamplingParams(**{k: getattr(ri, k) for k in keep}),
+        )
 
 
 @dataclass
 class DecompositionOutput:
     """Stage 1 at the input's size. All maps linear, float32, (H, W, C)."""
 
-    albedo: np.ndarray      # (H, W, 3) in [0, 1]
-    normal: np.ndarray      # (H, W, 3) unit, camera space (x right, y up, z toward the camera); 0 off the mask
-    roughness: np.ndarray   # (H, W, 1) in [0, 1]
-    metallic: np.ndarray    # (H, W, 1) in [0, 1]
+    albedo: np.ndarray  # (H, W, 3) in [0, 1]
+    normal: np.ndarray  # (H, W, 3) unit, camera space (x right, y up, z toward the camera); 0 off the mask
+    roughness: np.ndarray  # (H, W, 1) in [0, 1]
+    metallic: np.ndarray  # (H, W, 1) in [0, 1]
     mask: np.ndarray | None  # (H, W) from the photo's alpha, or None (all of the picture)
     processing_size: tuple[int, int]
     # The processing-size tensors stage 2 is conditioned on, so relight() after decompose() reuses them.
@@ -121,10 +133,10 @@ class DecompositionOutput:
 class RelightOutput:
     """Stage 2 at the input's size, one entry per light along the first axis. Linear HDR, float32."""
 
-    relit: np.ndarray               # (K, H, W, 3)
-    diffuse: np.ndarray | None      # (K, H, W, 3) D; None when the model has no decomposition branches
-    specular: np.ndarray | None     # (K, H, W, 3) S
-    balls: np.ndarray               # (K, S, S, 3) the light balls the model was given
+    relit: np.ndarray  # (K, H, W, 3)
+    diffuse: np.ndarray | None  # (K, H, W, 3) D; None when the model has no decomposition branches
+    specular: np.ndarray | None  # (K, H, W, 3) S
+    balls: np.ndarray  # (K, S, S, 3) the light balls the model was given
     lights: list[Light]
     intrinsics: DecompositionOutput  # what stage 2 was conditioned on
 
@@ -139,7 +151,9 @@ def pick_device(device: str = "auto") -> torch.device:
     if device not in ("cpu", "cuda", "mps") and not device.startswith("cuda:"):
         raise PipelineError(f"unknown device {device!r}; use auto, cpu, cuda or mps")
     if device.startswith("cuda") and not torch.cuda.is_available():
-        raise PipelineError(f"device {device!r} asked for, but this torch has no CUDA device (torch {torch.__version__})")
+        raise PipelineError(
+            f"device {device!r} asked for, but this torch has no CUDA device (torch {torch.__version__})"
+        )
     if device == "mps" and not (getattr(torch.backends, "mps", None) is not None and torch.backends.mps.is_available()):
         raise PipelineError("device 'mps' asked for, but MPS is not available here")
     return torch.device(device)
@@ -172,9 +186,11 @@ def load_stage(folder: Path, stage: str, device: torch.device):
     cfg, weights = d / "config.json", d / "model.safetensors"
     if not cfg.is_file() or not weights.is_file():
         missing = cfg if not cfg.is_file() else weights
-        raise PipelineError(f"{missing}: no trained {stage} model there. Run `dvc repro train_relight` first "
-                            "(it trains both stages into models/), or point --models at a folder holding "
-                            "intrinsics/ and relight/ (each config.json + model.safetensors)")
+        raise PipelineError(
+            f"{missing}: no trained {stage} model there. Run `dvc repro train_relight` first "
+            "(it trains both stages into models/), or point --models at a folder holding "
+            "intrinsics/ and relight/ (each config.json + model.safetensors)"
+        )
     try:
         saved = json.loads(cfg.read_text())["params"]
     except (OSError, ValueError, KeyError, TypeError) as exc:
@@ -204,16 +220,23 @@ def load_stage(folder: Path, stage: str, device: torch.device):
 class PILightPipeline:
     """Stage 1 (photo -> albedo, normal, roughness, metallic) and stage 2 (+ light -> relit, D, S)."""
 
-    def __init__(self, intrinsics, relight, config: PipelineConfig = PipelineConfig(), device: str | torch.device = "cpu",
-                 saved_params: dict[str, dict] | None = None):
+    def __init__(
+        self,
+        intrinsics,
+        relight,
+        config: PipelineConfig = PipelineConfig(),
+        device: str | torch.device = "cpu",
+        saved_params: dict[str, dict] | None = None,
+    ):
         self.intrinsics, self.relight_task, self.config = intrinsics, relight, config
         self.device = torch.device(device)
         self.saved_params = saved_params or {}
 
     # --- loading and saving -------------------------------------------------------------------
     @classmethod
-    def from_pretrained(cls, folder: str | Path = "models", *, device: str = "auto", params: str | Path | None = None,
-                        **overrides) -> "PILightPipeline":
+    def from_pretrained(
+        cls, folder: str | Path = "models", *, device: str = "auto", params: str | Path | None = None, **overrides
+    ) -> PILightPipeline:
         """Load ``folder/intrinsics`` and ``folder/relight``.
 
         Settings come from ``folder/pipeline.json`` (written by ``save_pretrained``), else from
@@ -221,12 +244,16 @@ class PILightPipeline:
         defaults; ``overrides`` (PipelineConfig fields) win over all three."""
         folder = Path(folder)
         if not folder.is_dir():
-            raise PipelineError(f"{folder}: models folder not found. Run `dvc repro train_relight` first (it trains "
-                                "both stages into models/), or pass --models DIR")
+            raise PipelineError(
+                f"{folder}: models folder not found. Run `dvc repro train_relight` first (it trains "
+                "both stages into models/), or pass --models DIR"
+            )
         config = PipelineConfig()
         if (folder / PIPELINE_FILE).is_file():
             try:
-                config = PipelineConfig.from_json(json.loads((folder / PIPELINE_FILE).read_text()), str(folder / PIPELINE_FILE))
+                config = PipelineConfig.from_json(
+                    json.loads((folder / PIPELINE_FILE).read_text()), str(folder / PIPELINE_FILE)
+                )
             except ValueError as exc:
                 raise PipelineError(f"{folder / PIPELINE_FILE}: {exc}") from None
         elif params is not None and Path(params).is_file():
@@ -281,7 +308,7 @@ class PILightPipeline:
     def _activation_bytes(self, task, ph: int, pw: int, items: int) -> int:
         f = task.stack.codec.factor
         chans = task.stack.model.unet.config.block_out_channels
-        per_item = sum(c * (ph // f) * (pw // f) / 4 ** i for i, c in enumerate(chans)) * ACT_FLOATS_PER_CHANNEL_PIXEL
+        per_item = sum(c * (ph // f) * (pw // f) / 4**i for i, c in enumerate(chans)) * ACT_FLOATS_PER_CHANNEL_PIXEL
         return int(items * per_item * 4)
 
     def estimate_memory(self, h: int, w: int, lights: int = 0, resolution: int | None = None) -> dict[str, int]:
@@ -289,11 +316,20 @@ class PILightPipeline:
         activations at the processing size); lights = 0 for decompose only."""
         ph, pw = self.processing_size(h, w, resolution)
         c = self.config
-        dev = self._activation_bytes(self.intrinsics, ph, pw, self._items(self.intrinsics, len(DOMAINS), c.intrinsics_sampling, 1))
+        dev = self._activation_bytes(
+            self.intrinsics, ph, pw, self._items(self.intrinsics, len(DOMAINS), c.intrinsics_sampling, 1)
+        )
         if lights:
             chunk = min(lights, c.relight_sampling.batch_size)
-            dev = max(dev, self._activation_bytes(self.relight_task, ph, pw, self._items(
-                self.relight_task, self.relight_task.V, c.relight_sampling, chunk)))
+            dev = max(
+                dev,
+                self._activation_bytes(
+                    self.relight_task,
+                    ph,
+                    pw,
+                    self._items(self.relight_task, self.relight_task.V, c.relight_sampling, chunk),
+                ),
+            )
         host = 4 * h * w * (HOST_FLOATS_DECOMPOSE + HOST_FLOATS_PER_LIGHT * lights)
         if self.device.type == "cpu":
             host += dev
@@ -312,8 +348,15 @@ class PILightPipeline:
             device = int(torch.cuda.get_device_properties(self.device).total_memory * MEMORY_FRACTION)
         return {"host": host, "device": device}
 
-    def check_memory(self, h: int, w: int, lights: int = 0, name: str = "image", resolution: int | None = None,
-                     max_memory: float | None = None) -> None:
+    def check_memory(
+        self,
+        h: int,
+        w: int,
+        lights: int = 0,
+        name: str = "image",
+        resolution: int | None = None,
+        max_memory: float | None = None,
+    ) -> None:
         """MemoryLimitError, before anything is allocated, when ``estimate_memory`` exceeds the limits."""
         est, lim = self.estimate_memory(h, w, lights, resolution), self.memory_limits(max_memory)
         ph, pw = est["processing"]
@@ -322,7 +365,8 @@ class PILightPipeline:
                 raise MemoryLimitError(
                     f"{name}: {w}x{h} pixels, processed at {pw}x{ph}, needs about {est[where] / GIB:.1f} GiB of "
                     f"{'memory' if where == 'host' else self.device.type + ' memory'}, over the limit of "
-                    f"{lim[where] / GIB:.1f} GiB. Use a smaller --resolution, or raise the limit with --max-memory GIB")
+                    f"{lim[where] / GIB:.1f} GiB. Use a smaller --resolution, or raise the limit with --max-memory GIB"
+                )
 
     # --- inference ----------------------------------------------------------------------------
     def _prepare(self, image, resolution: int | None, name: str) -> tuple[Photo, torch.Tensor, torch.Tensor]:
@@ -357,13 +401,26 @@ class PILightPipeline:
         if photo.mask is not None:
             n = n * torch.from_numpy(photo.mask)[None, None]
         hwc = lambda t: np.ascontiguousarray(t[0].permute(1, 2, 0).numpy(), dtype=np.float32)
-        return DecompositionOutput(albedo=hwc(up["albedo"].clamp(0, 1)), normal=hwc(n),
-                                   roughness=hwc(up["roughness"].clamp(0, 1)), metallic=hwc(up["metallic"].clamp(0, 1)),
-                                   mask=photo.mask, processing_size=tuple(cond["image"].shape[-2:]), conditions=cond)
+        return DecompositionOutput(
+            albedo=hwc(up["albedo"].clamp(0, 1)),
+            normal=hwc(n),
+            roughness=hwc(up["roughness"].clamp(0, 1)),
+            metallic=hwc(up["metallic"].clamp(0, 1)),
+            mask=photo.mask,
+            processing_size=tuple(cond["image"].shape[-2:]),
+            conditions=cond,
+        )
 
     @torch.no_grad()
-    def relight(self, image, lights: Light | Sequence[Light], *, resolution: int | None = None,
-                intrinsics: DecompositionOutput | None = None, name: str = "<image>") -> RelightOutput:
+    def relight(
+        self,
+        image,
+        lights: Light | Sequence[Light],
+        *,
+        resolution: int | None = None,
+        intrinsics: DecompositionOutput | None = None,
+        name: str = "<image>",
+    ) -> RelightOutput:
         """A photo under each of ``lights``: stage 1 once (or ``intrinsics`` from ``decompose`` of the
         same photo at the same resolution), then stage 2 for all lights in batches of
         ``relight_sampling.batch_size``."""
@@ -374,17 +431,19 @@ class PILightPipeline:
         if intrinsics is None:
             intrinsics = self.decompose(photo, resolution=resolution, name=name)
         elif intrinsics.processing_size != tuple(x.shape[-2:]):
-            raise PipelineError(f"intrinsics were computed at {intrinsics.processing_size}, but this call processes "
-                                f"at {tuple(x.shape[-2:])}; pass the same resolution")
+            raise PipelineError(
+                f"intrinsics were computed at {intrinsics.processing_size}, but this call processes "
+                f"at {tuple(x.shape[-2:])}; pass the same resolution"
+            )
         cond = intrinsics.conditions
         s = self.config.ball_resolution
         balls = torch.stack([_resize(l.ball.float()[None], (s, s))[0] for l in lights]).clamp_min(0)
         sp = self.config.relight_sampling
         outs: dict[str, list[torch.Tensor]] = {}
         for start in range(0, len(lights), sp.batch_size):
-            b = balls[start:start + sp.batch_size]
+            b = balls[start : start + sp.batch_size]
             k = b.shape[0]
-            rep = lambda t: t.expand(k, *t.shape[1:]).to(self.device)
+            rep = lambda t: t.expand(k, *t.shape[1:]).to(self.device)  # noqa: B023 (called within this iteration)
             batch = {"image_a": rep(x), "ball_b": b.to(self.device), "mask": rep(m)}
             intr = {d: rep(cond[d]) for d in DOMAINS}
             gen = torch.Generator().manual_seed(self.config.seed)
@@ -392,10 +451,18 @@ class PILightPipeline:
             for key, v in pred.items():
                 outs.setdefault(key, []).append(v.float().cpu())
         h, w = photo.size
-        full = {key: _resize(torch.cat(v), (h, w)).clamp_min(0).permute(0, 2, 3, 1).contiguous().numpy()
-                for key, v in outs.items()}
-        return RelightOutput(relit=full["relit"], diffuse=full.get("diffuse"), specular=full.get("specular"),
-                             balls=balls.permute(0, 2, 3, 1).contiguous().numpy(), lights=lights, intrinsics=intrinsics)
+        full = {
+            key: _resize(torch.cat(v), (h, w)).clamp_min(0).permute(0, 2, 3, 1).contiguous().numpy()
+            for key, v in outs.items()
+        }
+        return RelightOutput(
+            relit=full["relit"],
+            diffuse=full.get("diffuse"),
+            specular=full.get("specular"),
+            balls=balls.permute(0, 2, 3, 1).contiguous().numpy(),
+            lights=lights,
+            intrinsics=intrinsics,
+        )
 
 
 def _resize(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:

@@ -46,8 +46,10 @@ def compose_files(base: Path, overlay: Path) -> dict:
 def write_profile(base: Path, overlay: Path, out: Path, *, check_paths: bool = True) -> dict:
     """Compose, validate every section (weight folders checked unless check_paths is False), write out."""
     raw = compose_files(base, overlay)
-    text = (f"# Composed by `pilight profile {overlay}` from {base} (see pilight/profiles.py); edit the\n"
-            f"# overlay and compose again rather than this file.\n" + yaml.safe_dump(raw, sort_keys=False))
+    text = (
+        f"# Composed by `pilight profile {overlay}` from {base} (see pilight/profiles.py); edit the\n"
+        f"# overlay and compose again rather than this file.\n" + yaml.safe_dump(raw, sort_keys=False)
+    )
     try:
         validate_sections(raw, f"{overlay} over {base}", check_paths=check_paths)
     except ParamsError as exc:

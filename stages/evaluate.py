@@ -17,80 +17,67 @@ metrics.json says so.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from pilight import atomic  # noqa: E402
-from pilight.params import ParamsError, load_section  # noqa: E402
+from pilight import atomic
+from pilight.stage_cli import StageFailure, run_stage
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--params", default="params.yaml")
+def options(ap) -> None:
     ap.add_argument("--shards", type=Path, default=Path("data/shards"))
     ap.add_argument("--pred", type=Path, default=Path("data/intrinsics_pred"))
     ap.add_argument("--relit", type=Path, default=None, help="relit pairs (default: <shards>/../relit)")
     ap.add_argument("--metrics", type=Path, default=Path("metrics/evaluate.json"))
     ap.add_argument("--reports", type=Path, default=Path("reports"))
-    args = ap.parse_args(argv)
-    try:
-        load_section("base", args.params)
-        ev = load_section("evaluate", args.params)
-    except ParamsError as exc:
-        print(f"evaluate: {exc}", file=sys.stderr)
-        return 2
-    from pilight.data.schema import DataError
+
+
+def body(args, base, ev) -> int:
     from pilight.eval.intrinsics import evaluate_intrinsics, markdown_table
     from pilight.eval.lpips import load_lpips
+    from pilight.eval.relight import evaluate_relight
+    from pilight.eval.relight import markdown_table as relight_table
 
     relit_dir = args.relit if args.relit is not None else args.shards.parent / "relit"
     try:
         lpips, lpips_note = load_lpips(ev.lpips_net, ev.lpips_backbone)
-    except (OSError, ValueError) as exc:
-        print(f"evaluate: evaluate.lpips_backbone: {exc}", file=sys.stderr)
-        return 2
-    try:
-        result = evaluate_intrinsics(args.shards, args.pred, "test", lpips=lpips, grid_images=ev.grid_images)
-        result["lpips_note"] = lpips_note
-        grid = result.pop("grid", None)
-        if (relit_dir / "index.json").is_file():
-            from pilight.eval.relight import evaluate_relight, markdown_table as relight_table
-
-            split = json.loads((relit_dir / "index.json").read_text()).get("sampling", {}).get("split", "test")
-            relight = evaluate_relight(args.shards, relit_dir, split, lpips=lpips, lpips_note=lpips_note,
-                                       grid_pairs=ev.grid_images)
-        else:
-            relight = {"skipped": f"{relit_dir}/index.json not found (run the relight stage)"}
-            print(f"evaluate: relighting skipped: {relight['skipped']}")
-        relight_grid = relight.pop("grid", None)
-    except DataError as exc:
-        print(f"evaluate: {exc}", file=sys.stderr)
-        return 1
-    atomic.write_json(args.metrics, {"intrinsics": result, "relight": relight}, sort_keys=True)
-    table = markdown_table(result, "test")
-    atomic.write_text(args.reports / "intrinsics.md", table)
-    _write_or_remove(args.reports / "intrinsics_grid.png", grid)
-    print(table)
-    if "skipped" not in relight:
-        table = relight_table(relight, split)
-        atomic.write_text(args.reports / "relight.md", table)
-        print(table)
+    except (OSError, ValueError) as exc:  # a params value that does not load: a params error
+        raise StageFailure(f"evaluate.lpips_backbone: {exc}", code=2) from exc
+    result = evaluate_intrinsics(args.shards, args.pred, "test", lpips=lpips, grid_images=ev.grid_images)
+    result["lpips_note"] = lpips_note
+    grid = result.pop("grid", None)
+    if (relit_dir / "index.json").is_file():
+        split = json.loads((relit_dir / "index.json").read_text()).get("sampling", {}).get("split", "test")
+        relight = evaluate_relight(
+            args.shards, relit_dir, split, lpips=lpips, lpips_note=lpips_note, grid_pairs=ev.grid_images
+        )
     else:
-        (args.reports / "relight.md").unlink(missing_ok=True)
-    _write_or_remove(args.reports / "relight_grid.png", relight_grid)
+        relight = {"skipped": f"{relit_dir}/index.json not found (run the relight stage)"}
+        print(f"evaluate: relighting skipped: {relight['skipped']}")
+    relight_grid = relight.pop("grid", None)
+    atomic.write_json(args.metrics, {"intrinsics": result, "relight": relight}, sort_keys=True)
+    reports = {
+        "intrinsics.md": markdown_table(result, "test"),
+        "intrinsics_grid.png": grid,
+        "relight.md": None if "skipped" in relight else relight_table(relight, split),
+        "relight_grid.png": relight_grid,
+    }
+    for name, report in reports.items():
+        # A report whose input is absent this run is removed: last run's file must not pass for this one's.
+        path = args.reports / name
+        if report is None:
+            path.unlink(missing_ok=True)
+        elif name.endswith(".png"):
+            atomic.write_png(path, report)
+        else:
+            atomic.write_text(path, report)
+            print(report)
     return 0
 
 
-def _write_or_remove(path: Path, image) -> None:
-    """A report whose input is absent this run is removed: last run's file must not pass for this one's."""
-    if image is None:
-        path.unlink(missing_ok=True)
-    else:
-        atomic.write_png(path, image)
+def main(argv: list[str] | None = None) -> int:
+    return run_stage("evaluate", __doc__, argv, ["base", "evaluate"], options, body)
 
 
 if __name__ == "__main__":

@@ -10,39 +10,32 @@ Bad input exits 1 with one line naming the sample and file; nothing is left unde
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without install
-
-from pilight.data.exr import ExrError  # noqa: E402
-from pilight.data.schema import DataError  # noqa: E402
-from pilight.params import ParamsError, load_section  # noqa: E402
-from pilight.data.shards import write_shards  # noqa: E402
+from pilight.stage_cli import fails_on, run_stage
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--params", type=Path, default=Path("params.yaml"))
+def options(ap) -> None:
     ap.add_argument("--renders", type=Path, default=Path("data/renders"))
     ap.add_argument("--out", type=Path, default=Path("data/shards"))
-    args = ap.parse_args(argv)
-    try:
-        seed = load_section("base", args.params).seed
-        shard = load_section("shard", args.params)
-        heldout = load_section("render", args.params).hdri.test_holdout
-    except ParamsError as exc:
-        print(f"shard: error: {exc}", file=sys.stderr)
-        return 2
-    try:
-        index = write_shards(args.renders, args.out, shard, seed=seed, heldout_hdris=heldout, progress=True)
-    except (DataError, ExrError, OSError) as exc:
-        print(f"shard: error: {exc}", file=sys.stderr)
-        return 1
+
+
+def body(args, base, shard, render) -> int:
+    from pilight.data.exr import ExrError
+    from pilight.data.shards import write_shards
+
+    with fails_on(ExrError, OSError):
+        index = write_shards(
+            args.renders, args.out, shard, seed=base.seed, heldout_hdris=render.hdri.test_holdout, progress=True
+        )
     counts = ", ".join(f"{s} {v['samples']} samples / {len(v['shards'])} shards" for s, v in index["splits"].items())
     print(f"shard: wrote {args.out}: {counts}")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_stage("shard", __doc__, argv, ["base", "shard", "render"], options, body)
 
 
 if __name__ == "__main__":

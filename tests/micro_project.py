@@ -14,13 +14,26 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 
 MICRO = {
-    "resolution": 32, "ball_resolution": 32, "ball_samples": 8, "views_per_scene": 1, "lights_per_view": 2,
-    "scenes": {"train": 2, "val": 1, "test": 1}, "cycles": {"samples": 8, "adaptive_min_samples": 4},
+    "resolution": 32,
+    "ball_resolution": 32,
+    "ball_samples": 8,
+    "views_per_scene": 1,
+    "lights_per_view": 2,
+    "scenes": {"train": 2, "val": 1, "test": 1},
+    "cycles": {"samples": 8, "adaptive_min_samples": 4},
 }
 MICRO_UNET = {"block_out_channels": [32, 32], "cross_attention_dim": 32}
 MICRO_TRAIN = {"steps": 3, "checkpoint_every": 2, "image_every": 2, "log_every": 1, "warmup_steps": 0}
-MICRO_TRADE = {"images": 2, "steps": [1, 2], "spacings": ["leading", "trailing"], "intrinsics_cfg": [1.0, 2.0],
-               "relight_cfg": [1.5], "ensemble": [1, 2], "render_spp": [2, 4], "render_reference_spp": 8}
+MICRO_TRADE = {
+    "images": 2,
+    "steps": [1, 2],
+    "spacings": ["leading", "trailing"],
+    "intrinsics_cfg": [1.0, 2.0],
+    "relight_cfg": [1.5],
+    "ensemble": [1, 2],
+    "render_spp": [2, 4],
+    "render_reference_spp": 8,
+}
 
 
 def make_micro_project(d: Path, train: dict | None = None) -> dict[str, str]:
@@ -40,10 +53,20 @@ def make_micro_project(d: Path, train: dict | None = None) -> dict[str, str]:
     params["evaluate"]["trade"].update(MICRO_TRADE)
     params["evaluate"].update(grid_images=2, relight_lights=3)
     (d / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    env = {**os.environ, "DVC_NO_ANALYTICS": "1", "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+    # PYTHONPATH: the stage scripts import the installed package; here that is the project's own copy.
+    env = {
+        **os.environ,
+        "DVC_NO_ANALYTICS": "1",
+        "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}",
+        "PYTHONPATH": os.pathsep.join([str(d), *filter(None, [os.environ.get("PYTHONPATH")])]),
+    }
     # A user's project has commits (dvclive and `dvc exp` need a HEAD).
-    for cmd in (["git", "init", "-q"], [sys.executable, "-m", "dvc", "init", "-q"], ["git", "add", "-A"],
-                ["git", "-c", "user.name=ci", "-c", "user.email=ci@localhost", "commit", "-qm", "micro profile"]):
+    for cmd in (
+        ["git", "init", "-q"],
+        [sys.executable, "-m", "dvc", "init", "-q"],
+        ["git", "add", "-A"],
+        ["git", "-c", "user.name=ci", "-c", "user.email=ci@localhost", "commit", "-qm", "micro profile"],
+    ):
         r = subprocess.run(cmd, cwd=d, env=env, capture_output=True, text=True)
         assert r.returncode == 0, f"{cmd}\n{r.stdout}\n{r.stderr}"
     return env

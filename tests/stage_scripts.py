@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -33,6 +34,18 @@ def params_file(tmp_path: Path, sections: dict[str, dict]) -> Path:
     return path
 
 
+def stage_env(root: Path = REPO) -> dict[str, str]:
+    """The environment a stage script runs in: `root`'s pilight first. The scripts import the installed
+    package; an editable install of another checkout must not stand in for the code under test."""
+    return {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), *filter(None, [os.environ.get("PYTHONPATH")])])}
+
+
 def run_stage(script: str, *args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(REPO / "stages" / script), *map(str, args)],
-                          capture_output=True, text=True, cwd=REPO, timeout=600)
+    return subprocess.run(
+        [sys.executable, str(REPO / "stages" / script), *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=600,
+        env=stage_env(),
+    )

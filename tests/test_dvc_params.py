@@ -27,9 +27,14 @@ NOT_OUTPUT_PARAMS = {"render.cluster"}
 @pytest.mark.parametrize("stage", sorted(STAGE_SECTIONS))
 def test_every_field_of_a_stages_section_is_a_declared_param(stage):
     section, model = STAGE_SECTIONS[stage]
-    declared = [k for k in yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"][stage].get("params", [])
-                if isinstance(k, str)]
+    declared = [
+        k
+        for k in yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"][stage].get("params", [])
+        if isinstance(k, str)
+    ]
     assert not NOT_OUTPUT_PARAMS & set(declared), "a field that changes no output would rerun the stage"
     covered = lambda f: any(k in (section, f"{section}.{f}") or k.startswith(f"{section}.{f}.") for k in declared)
-    missing = [f"{section}.{f}" for f in model.model_fields if not covered(f) and f"{section}.{f}" not in NOT_OUTPUT_PARAMS]
+    missing = [
+        f"{section}.{f}" for f in model.model_fields if not covered(f) and f"{section}.{f}" not in NOT_OUTPUT_PARAMS
+    ]
     assert not missing, f"dvc.yaml stage {stage!r} does not declare {missing}: changing them would not rerun it"

@@ -26,15 +26,18 @@ def _params(tmp_path: Path, text: str | None = None, **edits) -> Path:
     return path
 
 
-@pytest.mark.parametrize("section, edit, key", [
-    ("infer_intrinsics", {"infer_intrinsics__cfg_scale": float("inf")}, "infer_intrinsics.cfg_scale"),
-    ("render", {"render__light__elevation_mean_deg": float("nan")}, "render.light.elevation_mean_deg"),
-    ("render", {"render__light__strength": {"lo": 5, "hi": float("inf")}}, "render.light.strength.hi"),
-    ("render", {"render__resolution": 100000}, "render.resolution"),
-    ("relight", {"relight__train__lr": float("nan")}, "relight.train.lr"),
-    ("render", {"render__scenes": {"train": True, "val": 1, "test": 1}}, "render.scenes"),
-    ("render", {"render__views_per_scene": False}, "render.views_per_scene"),
-])
+@pytest.mark.parametrize(
+    "section, edit, key",
+    [
+        ("infer_intrinsics", {"infer_intrinsics__cfg_scale": float("inf")}, "infer_intrinsics.cfg_scale"),
+        ("render", {"render__light__elevation_mean_deg": float("nan")}, "render.light.elevation_mean_deg"),
+        ("render", {"render__light__strength": {"lo": 5, "hi": float("inf")}}, "render.light.strength.hi"),
+        ("render", {"render__resolution": 100000}, "render.resolution"),
+        ("relight", {"relight__train__lr": float("nan")}, "relight.train.lr"),
+        ("render", {"render__scenes": {"train": True, "val": 1, "test": 1}}, "render.scenes"),
+        ("render", {"render__views_per_scene": False}, "render.views_per_scene"),
+    ],
+)
 def test_non_finite_unbounded_and_boolean_numbers_are_refused_by_key(tmp_path, section, edit, key):
     with pytest.raises(ParamsError, match=key.replace(".", r"\.")):
         load_section(section, _params(tmp_path, **edit))
@@ -53,5 +56,14 @@ def test_a_duplicate_key_is_an_error_not_the_last_value(tmp_path):
 
 
 def test_the_embedded_default_still_loads():
-    for section in ("base", "render", "shard", "intrinsics", "infer_intrinsics", "relight", "relight_infer", "evaluate"):
+    for section in (
+        "base",
+        "render",
+        "shard",
+        "intrinsics",
+        "infer_intrinsics",
+        "relight",
+        "relight_infer",
+        "evaluate",
+    ):
         load_section(section, ROOT / "params.yaml")

@@ -74,8 +74,11 @@ def test_repro_measures_the_speed_accuracy_trade(project):
     d, _ = project
     trade = json.loads((d / "metrics" / "trade.json").read_text())
     # steps x spacing (4) + single-step + cfg 2.0 + ensemble 2; cfg 1.0 / ensemble 1 coincide with single-step
-    assert [p["label"] for p in trade["intrinsics"]["points"]][-3:] == \
-        ["1-step, cfg 1, ens 1", "1-step, cfg 2, ens 1", "1-step, cfg 1, ens 2"]
+    assert [p["label"] for p in trade["intrinsics"]["points"]][-3:] == [
+        "1-step, cfg 1, ens 1",
+        "1-step, cfg 2, ens 1",
+        "1-step, cfg 1, ens 2",
+    ]
     for stage in ("intrinsics", "relight"):
         pts = trade[stage]["points"]
         assert all(p["seconds_per_image"] > 0 for p in pts)

@@ -39,10 +39,7 @@ def write_exr(path: str | os.PathLike, array: np.ndarray, *, half: bool) -> None
     if not np.all(np.isfinite(arr)):
         raise ExrError(f"{path}: refusing to write non-finite values (NaN/Inf)")
     dtype = np.float16 if half else np.float32
-    channels = {
-        name: np.ascontiguousarray(arr[..., i].astype(dtype))
-        for i, name in enumerate(_CHANNELS[arr.shape[2]])
-    }
+    channels = {name: np.ascontiguousarray(arr[..., i].astype(dtype)) for i, name in enumerate(_CHANNELS[arr.shape[2]])}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
 
     def write(tmp: str) -> None:

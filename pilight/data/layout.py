@@ -35,8 +35,16 @@ OPTIONAL_LIGHT_MAPS = ("ball_lambertian",)
 # float32 where the identity image = albedo * diffuse + specular must hold to float precision.
 FLOAT32_MAPS = frozenset({"albedo", "image", "diffuse", "specular"})
 CHANNELS = {
-    "albedo": 3, "normal": 3, "roughness": 1, "metallic": 1, "mask": 1,
-    "image": 3, "diffuse": 3, "specular": 3, "ball": 3, "ball_lambertian": 3,
+    "albedo": 3,
+    "normal": 3,
+    "roughness": 1,
+    "metallic": 1,
+    "mask": 1,
+    "image": 3,
+    "diffuse": 3,
+    "specular": 3,
+    "ball": 3,
+    "ball_lambertian": 3,
 }
 DONE_MARKER = ".done"
 

@@ -9,8 +9,9 @@ The list is written as `<shard_dir>/pairs/<split>.tsv` and read back by the stag
 from __future__ import annotations
 
 import zlib
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Iterable, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
@@ -26,8 +27,9 @@ class Pair(NamedTuple):
     b: int  # target light
 
 
-def view_pairs(scene: str, view: int, lights: int, *, seed: int,
-               pairs_per_view: int | None, identity: bool = True) -> list[Pair]:
+def view_pairs(
+    scene: str, view: int, lights: int, *, seed: int, pairs_per_view: int | None, identity: bool = True
+) -> list[Pair]:
     """Pairs for one view, sorted by (a, b)."""
     cross = [(a, b) for a in range(lights) for b in range(lights) if a != b]
     if pairs_per_view is not None and pairs_per_view < len(cross):
@@ -38,12 +40,15 @@ def view_pairs(scene: str, view: int, lights: int, *, seed: int,
     return [Pair(scene, view, a, b) for a, b in sorted(chosen)]
 
 
-def make_pairs(views: Iterable[tuple[str, int, int]], *, seed: int,
-               pairs_per_view: int | None, identity: bool = True) -> list[Pair]:
+def make_pairs(
+    views: Iterable[tuple[str, int, int]], *, seed: int, pairs_per_view: int | None, identity: bool = True
+) -> list[Pair]:
     """Pairs for every (scene, view, number of lights), in the order given."""
-    return [p for scene, view, lights in views
-            for p in view_pairs(scene, view, lights, seed=seed, pairs_per_view=pairs_per_view,
-                                identity=identity)]
+    return [
+        p
+        for scene, view, lights in views
+        for p in view_pairs(scene, view, lights, seed=seed, pairs_per_view=pairs_per_view, identity=identity)
+    ]
 
 
 def write_pairs(path: Path, pairs: Iterable[Pair]) -> None:

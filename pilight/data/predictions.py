@@ -17,8 +17,9 @@ import os
 import shutil
 import tarfile
 import tempfile
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 import webdataset as wds
@@ -35,8 +36,9 @@ def _exr_bytes(arr: np.ndarray, scratch: Path) -> bytes:
     return path.read_bytes()
 
 
-def write_predictions(out: Path, splits: dict[str, Iterable[tuple[str, dict[str, np.ndarray], str]]],
-                      info: dict[str, Any]) -> dict[str, Any]:
+def write_predictions(
+    out: Path, splits: dict[str, Iterable[tuple[str, dict[str, np.ndarray], str]]], info: dict[str, Any]
+) -> dict[str, Any]:
     """splits: split -> iterable of (key, {domain: H x W x C array}, meta json). Returns index.json."""
     out = Path(out)
     index: dict[str, Any] = {**info, "splits": {}}
@@ -51,20 +53,30 @@ def write_predictions(out: Path, splits: dict[str, Iterable[tuple[str, dict[str,
                 checks: dict[str, dict[str, Any]] = {}
 
                 def finished(f: str) -> None:  # called as each tar closes, while w.count is its count
-                    shards.append(Path(f).name)
-                    checks[Path(f).name] = {"samples": w.count, "sha256": sha256_file(Path(f))}
+                    shards.append(Path(f).name)  # noqa: B023 (called within this iteration)
+                    checks[Path(f).name] = {"samples": w.count, "sha256": sha256_file(Path(f))}  # noqa: B023 (called within this iteration)
 
                 count = 0
-                with wds.ShardWriter(str(tmp / split / f"{split}-%06d.tar"), maxcount=10**9, verbose=0, encoder=False,
-                                     post=finished, mtime=TAR_MTIME,
-                                     user=TAR_OWNER, group=TAR_OWNER, mode=0o444) as w:
+                with wds.ShardWriter(
+                    str(tmp / split / f"{split}-%06d.tar"),
+                    maxcount=10**9,
+                    verbose=0,
+                    encoder=False,
+                    post=finished,
+                    mtime=TAR_MTIME,
+                    user=TAR_OWNER,
+                    group=TAR_OWNER,
+                    mode=0o444,
+                ) as w:
                     for key, maps, meta in items:
                         sample = {"__key__": key, "meta.json": meta.encode()}
                         for d, a in sorted(maps.items()):
                             try:
                                 sample[f"{d}.exr"] = _exr_bytes(a, Path(scratch))
                             except ExrError as exc:  # the scratch file's name would tell the user nothing
-                                raise DataError(f"prediction {split}/{key} {d!r}: {str(exc).split(': ', 1)[-1]}") from None
+                                raise DataError(
+                                    f"prediction {split}/{key} {d!r}: {str(exc).split(': ', 1)[-1]}"
+                                ) from None
                         w.write(sample)
                         count += 1
                 index["splits"][split] = {"samples": count, "shards": shards, "shard_checks": checks}
@@ -110,16 +122,22 @@ def read_predictions(pred_dir: Path, split: str) -> dict[str, dict[str, np.ndarr
             if want is None:
                 raise DataError(f"{index_path}: no check recorded for {name}; rerun infer_intrinsics")
             if sha256_file(path) != want["sha256"]:
-                raise DataError(f"{path}: damaged prediction tar: sha256 differs from {index_path}; "
-                                f"{count_samples(path)} of its {want['samples']} samples readable; rerun infer_intrinsics")
+                raise DataError(
+                    f"{path}: damaged prediction tar: sha256 differs from {index_path}; "
+                    f"{count_samples(path)} of its {want['samples']} samples readable; rerun infer_intrinsics"
+                )
         try:
             for s in wds.tarfile_samples([{"url": str(path)}]):
-                out[s["__key__"]] = {k[:-4]: read_exr_bytes(v, f"{name}:{s['__key__']}.{k}")
-                                     for k, v in s.items() if k.endswith(".exr")}
+                out[s["__key__"]] = {
+                    k[:-4]: read_exr_bytes(v, f"{name}:{s['__key__']}.{k}") for k, v in s.items() if k.endswith(".exr")
+                }
         except (tarfile.TarError, OSError, EOFError) as exc:
-            raise DataError(f"{path}: unreadable prediction tar ({type(exc).__name__}: {exc}); "
-                            "rerun infer_intrinsics") from None
+            raise DataError(
+                f"{path}: unreadable prediction tar ({type(exc).__name__}: {exc}); rerun infer_intrinsics"
+            ) from None
     if "samples" in entry and len(out) != entry["samples"]:
-        raise DataError(f"{pred_dir / split}: {len(out)} predictions read but {index_path} says {entry['samples']}; "
-                        "rerun infer_intrinsics")
+        raise DataError(
+            f"{pred_dir / split}: {len(out)} predictions read but {index_path} says {entry['samples']}; "
+            "rerun infer_intrinsics"
+        )
     return out

@@ -4,7 +4,7 @@ One sample = one (scene, view, light). Shard members are `<key>.<name>.exr` (flo
 by `pilight.data.exr`) and `<key>.meta.json`, with key `<scene>_v<view:02d>_l<light:02d>`.
 In memory (renders, `validate_sample`) maps are H x W x C float32; loaders give C x H x W
 float32 tensors. Every map is LINEAR: sRGB appears only in PNG previews for people
-(`srgb_preview`, and the render stage's preview.png), never in shards or model inputs.
+(pilight.data.colour: `srgb_preview`, `to_uint8`), never in shards or model inputs.
 
 | key       | C | values                  | meaning                                   | to [-1, 1]       |
 |-----------|---|-------------------------|-------------------------------------------|------------------|
@@ -19,6 +19,7 @@ float32 tensors. Every map is LINEAR: sRGB appears only in PNG previews for peop
 | normal    | 3 | [-1, 1], unit on mask   | camera space: x right, y up, z to camera  | identity         |
 | meta      | - | JSON object             | scene, kind, split, view, light, camera, light_params, manifest_extra, render |
 
+hdr_to_model (the tone map) lives with the rest of colour in pilight.data.colour.
 65504 is the float16 maximum: shards store float16, so the render must stay below it.
 float16 rounding means image = albedo * diffuse + specular holds in shards to ~1e-3 relative,
 not exactly (the render folder keeps float32 where it must hold exactly).
@@ -27,14 +28,16 @@ not exactly (the render folder keeps float32 where it must hold exactly).
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
+from pilight.data.colour import HDR_MAX, hdr_to_model, model_to_hdr
+
 SCHEMA_VERSION = 1
-HDR_MAX = 65504.0  # float16 max: the largest value a shard can hold
 SPLITS = ("train", "val", "test")
 META_KEYS = ("scene", "kind", "split", "view", "light", "camera", "light_params")
 
@@ -74,28 +77,6 @@ REQUIRED_MAPS = tuple(k for k in SPECS if k not in OPTIONAL_MAPS)
 NORMAL_LENGTH_TOL = 1e-2  # float16 rounding of a unit vector stays well inside this
 IDENTITY_RTOL, IDENTITY_ATOL = 1e-2, 1e-3  # image vs albedo * diffuse + specular
 
-# --- linear HDR <-> model space -----------------------------------------------------------
-# Fixed exposure, then Reinhard u / (1 + u), then a 1/2.2 power. Reinhard maps [0, inf) onto
-# [0, 1) with no clipping and a closed-form inverse; the power spreads the codes like a display
-# gamma so mid-gray 0.18 lands near 0 (-0.15) instead of crowding at -1. Exposure is fixed, not
-# per image, so brightness differences between lights survive (relighting must learn them).
-EXPOSURE = 1.0
-GAMMA = 2.2
-Y_MAX = 2.0 * (HDR_MAX / (1.0 + HDR_MAX)) ** (1.0 / GAMMA) - 1.0  # image of HDR_MAX
-
-
-def hdr_to_model(x, exposure: float = EXPOSURE):
-    """Linear HDR (ndarray or tensor, float32/64, >= 0) -> [-1, 1). 0 -> -1, 1 -> 0.46, 4 -> 0.81."""
-    u = x.clip(0.0, None) * exposure  # negatives are invalid input; clipping avoids NaN
-    return 2.0 * (u / (1.0 + u)) ** (1.0 / GAMMA) - 1.0
-
-
-def model_to_hdr(y, exposure: float = EXPOSURE):
-    """Exact inverse of `hdr_to_model` (to float precision). Out-of-range model outputs are
-    clamped to [-1, hdr_to_model(HDR_MAX)] so the result is finite and storable as float16."""
-    r = ((y.clip(-1.0, Y_MAX) + 1.0) / 2.0) ** GAMMA
-    return r / (1.0 - r) / exposure
-
 
 def unit_to_model(x):
     """[0, 1] maps (albedo, roughness, metallic, mask) -> [-1, 1]."""
@@ -121,22 +102,6 @@ def from_model(key: str, y):
 def _base(key: str) -> str:
     # Loader keys such as "image_a" or "ball_b" share the spec of their base map.
     return key if key in SPECS else key.rsplit("_", 1)[0]
-
-
-def srgb_preview(x: np.ndarray) -> np.ndarray:
-    """Linear values -> sRGB uint8 for PNG previews only (clips at 1; never a model input)."""
-    x = np.clip(np.asarray(x, dtype=np.float32), 0.0, 1.0)
-    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-    return np.round(srgb * 255.0).astype(np.uint8)
-
-
-def to_uint8(x, hdr: bool) -> np.ndarray:
-    """C x H x W tensor -> H x W x 3 uint8 sRGB preview (``hdr``: srgb_preview, clipped at 1; else the
-    [0, 1] values as they are). For report tiles and training previews only."""
-    a = x.detach().float().cpu().numpy().transpose(1, 2, 0)
-    if a.shape[2] == 1:
-        a = np.repeat(a, 3, axis=2)
-    return srgb_preview(a) if hdr else (np.clip(a, 0, 1) * 255 + 0.5).astype(np.uint8)
 
 
 # --- validation ---------------------------------------------------------------------------
@@ -179,8 +144,11 @@ def validate_sample(sample: Mapping[str, Any], where: str | Mapping[str, str | P
         if key == "mask":
             out |= (arr != 0) & (arr != 1)
         if out.any():
-            raise fail(key, f"{int(out.sum())} value(s) outside [{spec.lo}, {spec.hi}]"
-                       f"{' (must be 0 or 1)' if key == 'mask' else ''}: min {arr.min():g}, max {arr.max():g}")
+            raise fail(
+                key,
+                f"{int(out.sum())} value(s) outside [{spec.lo}, {spec.hi}]"
+                f"{' (must be 0 or 1)' if key == 'mask' else ''}: min {arr.min():g}, max {arr.max():g}",
+            )
         if key == "normal" and (np.linalg.norm(arr, axis=-1) > 1 + NORMAL_LENGTH_TOL).any():
             raise fail(key, f"normal longer than 1 + {NORMAL_LENGTH_TOL}")
     a, d, s, img = (np.asarray(sample[k], np.float32) for k in ("albedo", "diffuse", "specular", "image"))
@@ -212,8 +180,19 @@ def _meta_name(meta: Any) -> str:
 
 
 __all__ = [
-    "SCHEMA_VERSION", "HDR_MAX", "SPLITS", "SPECS", "MapSpec", "REQUIRED_MAPS", "OPTIONAL_MAPS",
-    "EXPOSURE", "GAMMA", "DataError", "SampleError", "hdr_to_model", "model_to_hdr",
-    "unit_to_model", "model_to_unit", "to_model", "from_model", "srgb_preview",
-    "sample_key", "validate_sample",
+    "SCHEMA_VERSION",
+    "HDR_MAX",
+    "SPLITS",
+    "SPECS",
+    "MapSpec",
+    "REQUIRED_MAPS",
+    "OPTIONAL_MAPS",
+    "DataError",
+    "SampleError",
+    "unit_to_model",
+    "model_to_unit",
+    "to_model",
+    "from_model",
+    "sample_key",
+    "validate_sample",
 ]

@@ -26,8 +26,9 @@ import shutil
 import sys
 import tarfile
 import tempfile
+from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import Any, Iterable, Iterator, Literal
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -40,8 +41,16 @@ from pilight.atomic import sha256_file
 from pilight.data import layout
 from pilight.data.exr import ExrError, read_exr, read_exr_bytes, write_exr
 from pilight.data.pairs import make_pairs, read_pairs, write_pairs
-from pilight.data.schema import (OPTIONAL_MAPS, SCHEMA_VERSION, SPECS, SPLITS, DataError,
-                                 SampleError, sample_key, validate_sample)
+from pilight.data.schema import (
+    OPTIONAL_MAPS,
+    SCHEMA_VERSION,
+    SPECS,
+    SPLITS,
+    DataError,
+    SampleError,
+    sample_key,
+    validate_sample,
+)
 from pilight.data.shard_params import ShardParams
 from pilight.data.splits import check_hdri_holdout, check_splits, hdri_summary, write_splits
 
@@ -56,8 +65,15 @@ class RenderFolderError(DataError):
 
 
 # ---------------------------------------------------------------------------------- writer
-def write_shards(renders: Path, out: Path, params: ShardParams, *, seed: int,
-                 heldout_hdris: Iterable[str] = (), progress: bool = False) -> dict[str, Any]:
+def write_shards(
+    renders: Path,
+    out: Path,
+    params: ShardParams,
+    *,
+    seed: int,
+    heldout_hdris: Iterable[str] = (),
+    progress: bool = False,
+) -> dict[str, Any]:
     """Validate every sample under `renders` and write the shard folder `out`; returns index.json's
     content. `heldout_hdris` (render.hdri.test_holdout) must not light any train/val scene.
     On any error nothing is left under `out` (an earlier complete `out` is kept)."""
@@ -97,33 +113,49 @@ def _write_all(renders, tmp, manifest, splits, params, seed, progress) -> dict[s
     total = sum(e["views"] * e["lights"] for e in entries.values())
     sizes: dict[str, tuple] = {}  # dataset-wide sizes, so batches collate
     index: dict[str, Any] = {"schema_version": SCHEMA_VERSION, "render": render_info, "splits": {}}
-    with tqdm(total=total, desc="shard", unit="sample", disable=not progress) as bar, \
-            tempfile.TemporaryDirectory() as scratch:
+    with (
+        tqdm(total=total, desc="shard", unit="sample", disable=not progress) as bar,
+        tempfile.TemporaryDirectory() as scratch,
+    ):
         for split in SPLITS:
             views = [(sid, v, entries[sid]["lights"]) for sid in splits[split] for v in range(entries[sid]["views"])]
-            write_pairs(tmp / "pairs" / f"{split}.tsv", make_pairs(
-                views, seed=seed, pairs_per_view=params.pairs_per_view, identity=params.identity_pairs))
+            write_pairs(
+                tmp / "pairs" / f"{split}.tsv",
+                make_pairs(views, seed=seed, pairs_per_view=params.pairs_per_view, identity=params.identity_pairs),
+            )
             shards: list[str] = []
             checks: dict[str, dict[str, Any]] = {}
             if views:
                 (tmp / split).mkdir()
 
                 def finished(f: str) -> None:  # called as each shard closes, while writer.count is its count
-                    shards.append(Path(f).name)
-                    checks[Path(f).name] = {"samples": writer.count, "sha256": sha256_file(Path(f))}
+                    shards.append(Path(f).name)  # noqa: B023 (called within this iteration)
+                    checks[Path(f).name] = {"samples": writer.count, "sha256": sha256_file(Path(f))}  # noqa: B023 (called within this iteration)
 
                 writer = wds.ShardWriter(
-                    str(tmp / split / f"{split}-%06d.tar"), maxcount=sys.maxsize, maxsize=float("inf"),
-                    post=finished, verbose=0, encoder=False,
-                    mtime=TAR_MTIME, user=TAR_OWNER, group=TAR_OWNER, mode=0o444)
+                    str(tmp / split / f"{split}-%06d.tar"),
+                    maxcount=sys.maxsize,
+                    maxsize=float("inf"),
+                    post=finished,
+                    verbose=0,
+                    encoder=False,
+                    mtime=TAR_MTIME,
+                    user=TAR_OWNER,
+                    group=TAR_OWNER,
+                    mode=0o444,
+                )
                 with writer:
                     for sid in splits[split]:
                         for group in _scene_groups(renders, entries[sid], render_info, sizes, Path(scratch)):
                             _write_view(writer, group, params)
                             bar.update(len(group))
             index["splits"][split] = {
-                "scenes": len(splits[split]), "views": len(views),
-                "samples": sum(n for _, _, n in views), "shards": shards, "shard_checks": checks}
+                "scenes": len(splits[split]),
+                "views": len(views),
+                "samples": sum(n for _, _, n in views),
+                "shards": shards,
+                "shard_checks": checks,
+            }
     index["sizes"] = {k: list(v) for k, v in sorted(sizes.items())}
     return index
 
@@ -137,8 +169,7 @@ def _write_view(writer: wds.ShardWriter, group: list[dict], params: ShardParams)
         writer.write(sample)
 
 
-def _scene_groups(renders: Path, entry: dict, render_info: dict, sizes: dict,
-                  scratch: Path) -> Iterator[list[dict]]:
+def _scene_groups(renders: Path, entry: dict, render_info: dict, sizes: dict, scratch: Path) -> Iterator[list[dict]]:
     """Per view: the encoded samples (one per light), after validating each."""
     sid = entry["id"]
     scene_json = renders / sid / "scene.json"
@@ -147,8 +178,10 @@ def _scene_groups(renders: Path, entry: dict, render_info: dict, sizes: dict,
     for view in range(entry["views"]):
         vdir = layout.view_dir(renders, sid, view)
         if not (vdir / layout.DONE_MARKER).is_file():
-            raise RenderFolderError(f"sample {sample_key(sid, view, 0)}: {vdir / layout.DONE_MARKER} missing: "
-                                    "view not completely rendered (rerun the render stage)")
+            raise RenderFolderError(
+                f"sample {sample_key(sid, view, 0)}: {vdir / layout.DONE_MARKER} missing: "
+                "view not completely rendered (rerun the render stage)"
+            )
         camera = _entry_for(info.get("cameras"), "view", view, f"{scene_json}: 'cameras'")
         lights = info.get("lights")
         if isinstance(lights, list) and lights and isinstance(lights[0], list):
@@ -156,8 +189,10 @@ def _scene_groups(renders: Path, entry: dict, render_info: dict, sizes: dict,
         group = []
         for light in range(entry["lights"]):
             key = sample_key(sid, view, light)
-            files = {name: layout.map_path(renders, sid, view, name, None if name in layout.VIEW_MAPS else light)
-                     for name in SPECS}
+            files = {
+                name: layout.map_path(renders, sid, view, name, None if name in layout.VIEW_MAPS else light)
+                for name in SPECS
+            }
             files = {n: p for n, p in files.items() if n not in OPTIONAL_MAPS or p.is_file()}
             sample: dict[str, Any] = {"__key__": key}
             for name, path in files.items():
@@ -166,9 +201,16 @@ def _scene_groups(renders: Path, entry: dict, render_info: dict, sizes: dict,
                 except ExrError as exc:
                     raise SampleError(f"sample {key}: {name!r}: {exc}") from None
             sample["meta"] = {
-                "scene": sid, "kind": entry.get("kind"), "split": entry["split"], "view": view, "light": light,
-                "camera": camera, "light_params": _entry_for(lights, "light", light, f"{scene_json}: 'lights'"),
-                "manifest_extra": extra, "render": render_info}
+                "scene": sid,
+                "kind": entry.get("kind"),
+                "split": entry["split"],
+                "view": view,
+                "light": light,
+                "camera": camera,
+                "light_params": _entry_for(lights, "light", light, f"{scene_json}: 'lights'"),
+                "manifest_extra": extra,
+                "render": render_info,
+            }
             files["meta"] = scene_json
             validate_sample(sample, files)
             _check_sizes(sample, files, sizes)
@@ -183,8 +225,10 @@ def _check_sizes(sample: dict, files: dict, sizes: dict) -> None:
         hw = sample[name].shape[:2]
         ref = sizes.setdefault(name, hw)
         if hw != ref:
-            raise SampleError(f"sample {sample['__key__']}: {name!r} ({files[name]}): size {hw} differs from "
-                              f"the first sample's {ref}; all samples must share one size")
+            raise SampleError(
+                f"sample {sample['__key__']}: {name!r} ({files[name]}): size {hw} differs from "
+                f"the first sample's {ref}; all samples must share one size"
+            )
 
 
 def _encode(sample: dict, scratch: Path) -> dict[str, Any]:
@@ -194,8 +238,7 @@ def _encode(sample: dict, scratch: Path) -> dict[str, Any]:
         if name in sample:
             write_exr(tmp, sample[name], half=True)  # the EXR header has no time or host
             enc[f"{name}.exr"] = tmp.read_bytes()
-    enc["meta.json"] = json.dumps(sample["meta"], sort_keys=True, separators=(",", ":"),
-                                  allow_nan=False).encode()
+    enc["meta.json"] = json.dumps(sample["meta"], sort_keys=True, separators=(",", ":"), allow_nan=False).encode()
     return enc
 
 
@@ -264,27 +307,33 @@ def verify_shards(folder: Path, split: str, entry: dict[str, Any], index_path: P
     if checks is None:
         return
     if not isinstance(checks, dict) or sorted(checks) != sorted(entry["shards"]):
-        raise DataError(f"{index_path}: split {split!r}: 'shard_checks' does not list exactly its shards; "
-                        "rerun the shard stage")
+        raise DataError(
+            f"{index_path}: split {split!r}: 'shard_checks' does not list exactly its shards; rerun the shard stage"
+        )
     recorded = sum(c["samples"] for c in checks.values())
     if "samples" in entry and recorded != entry["samples"]:
-        raise DataError(f"{index_path}: split {split!r}: its shards hold {recorded} samples but it says "
-                        f"{entry['samples']}; rerun the shard stage")
+        raise DataError(
+            f"{index_path}: split {split!r}: its shards hold {recorded} samples but it says "
+            f"{entry['samples']}; rerun the shard stage"
+        )
     for name in entry["shards"]:
         path = Path(folder) / name
         want = checks[name]
         try:
             st = path.stat()
         except FileNotFoundError:
-            raise DataError(f"{path}: shard missing ({index_path} lists it with {want['samples']} samples); "
-                            "rerun the shard stage") from None
+            raise DataError(
+                f"{path}: shard missing ({index_path} lists it with {want['samples']} samples); rerun the shard stage"
+            ) from None
         key = (str(path.resolve()), st.st_size, st.st_mtime_ns, st.st_ino, want["sha256"])
         if key in _VERIFIED:
             continue
         if sha256_file(path) != want["sha256"]:
             found = count_samples(path)
-            raise DataError(f"{path}: damaged shard: sha256 differs from {index_path}; {found} of its "
-                            f"{want['samples']} samples readable; rerun the shard stage")
+            raise DataError(
+                f"{path}: damaged shard: sha256 differs from {index_path}; {found} of its "
+                f"{want['samples']} samples readable; rerun the shard stage"
+            )
         _VERIFIED.add(key)
 
 
@@ -314,8 +363,17 @@ class ShardDataset(IterableDataset):
     Call set_epoch(e) before each epoch when not repeating (like DistributedSampler).
     """
 
-    def __init__(self, shard_dir: Path, split: str, task: Literal["intrinsics", "relight"], *,
-                 shuffle: bool = False, repeat: bool = False, seed: int = 0, buffer: int = 256):
+    def __init__(
+        self,
+        shard_dir: Path,
+        split: str,
+        task: Literal["intrinsics", "relight"],
+        *,
+        shuffle: bool = False,
+        repeat: bool = False,
+        seed: int = 0,
+        buffer: int = 256,
+    ):
         if task not in ("intrinsics", "relight"):
             raise ValueError(f"task must be 'intrinsics' or 'relight', got {task!r}")
         entry = read_index(shard_dir)["splits"].get(split)
@@ -385,8 +443,10 @@ class ShardDataset(IterableDataset):
         by_light = {_meta(s)["light"]: s for s in unit}
         for a, b in self.pairs.get((scene, view), []):
             if a not in by_light or b not in by_light:
-                raise DataError(f"{unit[0]['__url__']}: pairs list {scene} view {view} light {a}->{b}, "
-                                f"but the shard has lights {sorted(by_light)}; shards and pairs out of date?")
+                raise DataError(
+                    f"{unit[0]['__url__']}: pairs list {scene} view {view} light {a}->{b}, "
+                    f"but the shard has lights {sorted(by_light)}; shards and pairs out of date?"
+                )
             yield by_light[a], by_light[b]
 
     def _decode(self, item: Any) -> dict[str, Any]:
@@ -396,9 +456,13 @@ class ShardDataset(IterableDataset):
             return out
         sa, sb = item
         ma, mb = _meta(sa), _meta(sb)
-        out = {"key": f"{sample_key(ma['scene'], ma['view'], ma['light'])}_to_l{mb['light']:02d}",
-               "meta_a": sa["meta.json"].decode(), "meta_b": sb["meta.json"].decode(),
-               "image_a": _tensor(sa, "image"), "ball_a": _tensor(sa, "ball")}
+        out = {
+            "key": f"{sample_key(ma['scene'], ma['view'], ma['light'])}_to_l{mb['light']:02d}",
+            "meta_a": sa["meta.json"].decode(),
+            "meta_b": sb["meta.json"].decode(),
+            "image_a": _tensor(sa, "image"),
+            "ball_a": _tensor(sa, "ball"),
+        }
         out.update({f"{k}_b": _tensor(sb, k) for k in ("image", "ball", "diffuse", "specular")})
         if "ball_lambertian.exr" in sb:  # present when the render stage wrote it (render.lambertian_ball)
             out["ball_lambertian_b"] = _tensor(sb, "ball_lambertian")
@@ -409,9 +473,10 @@ class ShardDataset(IterableDataset):
 
 
 # Members every sample of a task needs; one lost to a cut tar must be named, not a KeyError later.
-_REQUIRED = {"intrinsics": ("meta.json", "image.exr", *(f"{k}.exr" for k in INTRINSICS)),
-             "relight": ("meta.json", "image.exr", "ball.exr", "diffuse.exr", "specular.exr",
-                         *(f"{k}.exr" for k in INTRINSICS))}
+_REQUIRED = {
+    "intrinsics": ("meta.json", "image.exr", *(f"{k}.exr" for k in INTRINSICS)),
+    "relight": ("meta.json", "image.exr", "ball.exr", "diffuse.exr", "specular.exr", *(f"{k}.exr" for k in INTRINSICS)),
+}
 
 
 def _checked_samples(urls: list[str], task: str) -> Iterator[dict]:
@@ -423,8 +488,10 @@ def _checked_samples(urls: list[str], task: str) -> Iterator[dict]:
             url = s.get("__url__", url)
             missing = [m for m in _REQUIRED[task] if m not in s]
             if missing:
-                raise DataError(f"{url}: sample {s.get('__key__')!r} lacks {missing}: the shard is cut or "
-                                "damaged; rerun the shard stage")
+                raise DataError(
+                    f"{url}: sample {s.get('__key__')!r} lacks {missing}: the shard is cut or "
+                    "damaged; rerun the shard stage"
+                )
             yield s
     except (tarfile.TarError, OSError, EOFError) as exc:
         raise DataError(f"{url}: unreadable shard ({type(exc).__name__}: {exc}); rerun the shard stage") from None
@@ -459,28 +526,48 @@ def _tensor(sample: dict, name: str) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(arr.transpose(2, 0, 1)))  # C x H x W
 
 
-def intrinsics_dataset(shard_dir: Path, split: str = "train", *, shuffle: bool = True,
-                       repeat: bool = False, seed: int = 0, buffer: int = 256) -> ShardDataset:
+def intrinsics_dataset(
+    shard_dir: Path,
+    split: str = "train",
+    *,
+    shuffle: bool = True,
+    repeat: bool = False,
+    seed: int = 0,
+    buffer: int = 256,
+) -> ShardDataset:
     """Stage 1: {key, meta, image, albedo, normal, roughness, metallic, mask}, linear, C x H x W."""
     return ShardDataset(shard_dir, split, "intrinsics", shuffle=shuffle, repeat=repeat, seed=seed, buffer=buffer)
 
 
-def relight_dataset(shard_dir: Path, split: str = "train", *, shuffle: bool = True,
-                    repeat: bool = False, seed: int = 0, buffer: int = 256) -> ShardDataset:
+def relight_dataset(
+    shard_dir: Path,
+    split: str = "train",
+    *,
+    shuffle: bool = True,
+    repeat: bool = False,
+    seed: int = 0,
+    buffer: int = 256,
+) -> ShardDataset:
     """Stage 2: {key, meta_a, meta_b, image_a, ball_a, image_b, ball_b, diffuse_b, specular_b, albedo,
     normal, roughness, metallic, mask} (+ ball_lambertian_a/_b when rendered): input under light a
     (with the ball of that light), target under light b, same view."""
     return ShardDataset(shard_dir, split, "relight", shuffle=shuffle, repeat=repeat, seed=seed, buffer=buffer)
 
 
-def eval_dataset(shard_dir: Path, split: str = "test",
-                 task: Literal["intrinsics", "relight"] = "relight") -> ShardDataset:
+def eval_dataset(
+    shard_dir: Path, split: str = "test", task: Literal["intrinsics", "relight"] = "relight"
+) -> ShardDataset:
     """Evaluation: one pass, no shuffle, in shard order (with num_workers <= 1)."""
     return ShardDataset(shard_dir, split, task, shuffle=False, repeat=False)
 
 
-def make_loader(dataset: ShardDataset, batch_size: int, num_workers: int = 0,
-                drop_last: bool = False) -> DataLoader:
+def make_loader(dataset: ShardDataset, batch_size: int, num_workers: int = 0, drop_last: bool = False) -> DataLoader:
     """A DataLoader over a ShardDataset; batches are built inside each worker."""
-    return DataLoader(dataset, batch_size=batch_size, num_workers=num_workers, drop_last=drop_last,
-                      pin_memory=torch.cuda.is_available(), persistent_workers=False)
+    return DataLoader(
+        dataset,
+        batch_size=batch_size,
+        num_workers=num_workers,
+        drop_last=drop_last,
+        pin_memory=torch.cuda.is_available(),
+        persistent_workers=False,
+    )

@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any
 
 from pilight.data.schema import SPLITS, DataError
 
@@ -38,16 +39,18 @@ def check_splits(scenes: Iterable[Mapping[str, Any]], where: str = "manifest.jso
     return {s: sorted(i for i, sp in seen.items() if sp == s) for s in SPLITS}
 
 
-def check_hdri_holdout(scenes: Iterable[Mapping[str, Any]], heldout: Iterable[str],
-                       where: str = "manifest.json") -> None:
+def check_hdri_holdout(
+    scenes: Iterable[Mapping[str, Any]], heldout: Iterable[str], where: str = "manifest.json"
+) -> None:
     """Raise SplitError if a train/val scene uses an HDRI held out for test (render.hdri.test_holdout)."""
     heldout = set(heldout)
     for entry in scenes:
         if entry.get("split") != "test":
             leaked = sorted(heldout & set(_names(entry)))
             if leaked:
-                raise SplitError(f"{where}: scene {entry.get('id')!r} ({entry.get('split')}) uses HDRIs "
-                                 f"held out for test: {leaked}")
+                raise SplitError(
+                    f"{where}: scene {entry.get('id')!r} ({entry.get('split')}) uses HDRIs held out for test: {leaked}"
+                )
 
 
 def _names(entry: Mapping[str, Any]) -> list[str]:
@@ -60,9 +63,11 @@ def hdri_summary(scenes: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
     for entry in scenes:
         used[entry["split"]].update(_names(entry))
     seen = used["train"] | used["val"]
-    return {"per_split": {s: sorted(v) for s, v in used.items()},
-            "only_in_test": sorted(used["test"] - seen),
-            "test_also_in_train_or_val": sorted(used["test"] & seen)}
+    return {
+        "per_split": {s: sorted(v) for s, v in used.items()},
+        "only_in_test": sorted(used["test"] - seen),
+        "test_also_in_train_or_val": sorted(used["test"] & seen),
+    }
 
 
 def write_splits(shard_dir: Path, splits: Mapping[str, list[str]], hdris: Mapping[str, Any]) -> None:

@@ -35,16 +35,23 @@ class CrossBatchAttnProcessor:
             raise ValueError(f"num_views must be >= 1, got {num_views}")
         self.num_views = int(num_views)
 
-    def __call__(self, attn: Attention, hidden_states: torch.Tensor,
-                 encoder_hidden_states: torch.Tensor | None = None,
-                 attention_mask: torch.Tensor | None = None,
-                 temb: torch.Tensor | None = None) -> torch.Tensor:
+    def __call__(
+        self,
+        attn: Attention,
+        hidden_states: torch.Tensor,
+        encoder_hidden_states: torch.Tensor | None = None,
+        attention_mask: torch.Tensor | None = None,
+        temb: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         if encoder_hidden_states is not None:
-            raise ValueError("CrossBatchAttnProcessor is for self-attention (attn1) only; "
-                             "it was called with encoder_hidden_states (a cross-attention layer)")
+            raise ValueError(
+                "CrossBatchAttnProcessor is for self-attention (attn1) only; "
+                "it was called with encoder_hidden_states (a cross-attention layer)"
+            )
         if attention_mask is not None:
-            raise NotImplementedError("CrossBatchAttnProcessor does not support attention masks "
-                                      "(a per-item mask has no meaning across views)")
+            raise NotImplementedError(
+                "CrossBatchAttnProcessor does not support attention masks (a per-item mask has no meaning across views)"
+            )
         views = self.num_views
         residual = hidden_states
         if attn.spatial_norm is not None:
@@ -56,8 +63,10 @@ class CrossBatchAttnProcessor:
             hidden_states = hidden_states.view(batch_size, channel, height * width).transpose(1, 2)
         batch_size, tokens, _ = hidden_states.shape
         if batch_size % views:
-            raise ValueError(f"cross-batch attention: batch size {batch_size} is not divisible by "
-                             f"num_views {views} (batch must be samples x views, sample-major)")
+            raise ValueError(
+                f"cross-batch attention: batch size {batch_size} is not divisible by "
+                f"num_views {views} (batch must be samples x views, sample-major)"
+            )
         samples = batch_size // views
 
         if attn.group_norm is not None:
@@ -82,8 +91,9 @@ class CrossBatchAttnProcessor:
             key = attn.norm_k(key)
 
         # Same call as AttnProcessor2_0 (default scale 1/sqrt(head_dim)).
-        hidden_states = F.scaled_dot_product_attention(query, key, value, attn_mask=None,
-                                                       dropout_p=0.0, is_causal=False)
+        hidden_states = F.scaled_dot_product_attention(
+            query, key, value, attn_mask=None, dropout_p=0.0, is_causal=False
+        )
         # (B, heads, V*N, d) -> (B, V*N, heads*d) -> (B*V, N, heads*d)
         hidden_states = hidden_states.transpose(1, 2).reshape(batch_size, tokens, attn.heads * head_dim)
         hidden_states = hidden_states.to(query.dtype)

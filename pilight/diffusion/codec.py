@@ -57,7 +57,7 @@ class PixelCodec(nn.Module):
         if factor < 1:
             raise ValueError(f"pixel codec factor must be >= 1, got {factor}")
         self.factor = int(factor)
-        self.latent_channels = 3 * self.factor ** 2
+        self.latent_channels = 3 * self.factor**2
         self.name = f"pixel-unshuffle-{self.factor}"
 
     def encode(self, x: torch.Tensor) -> torch.Tensor:
@@ -85,8 +85,10 @@ class VaeCodec(nn.Module):
 
         path = os.fspath(path)
         if not os.path.isdir(path):
-            raise FileNotFoundError(f"VAE directory not found: {path!r} (expected a diffusers "
-                                    "AutoencoderKL saved with save_pretrained; nothing is downloaded)")
+            raise FileNotFoundError(
+                f"VAE directory not found: {path!r} (expected a diffusers "
+                "AutoencoderKL saved with save_pretrained; nothing is downloaded)"
+            )
         vae = AutoencoderKL.from_pretrained(path, local_files_only=True, torch_dtype=torch.float32)
         vae.requires_grad_(False).eval()
         vae.encoder.to(dtype)
@@ -111,7 +113,7 @@ class VaeCodec(nn.Module):
         _check_divisible(x, self.factor)
         dist = self.vae.encode(x.to(self.encode_dtype)).latent_dist
         z = dist.mean if generator is None else dist.sample(generator)
-        return ((z.float() - self.shift_factor) * self.scaling_factor)
+        return (z.float() - self.shift_factor) * self.scaling_factor
 
     def _decode_fp32(self, z: torch.Tensor) -> torch.Tensor:
         with torch.autocast(device_type=z.device.type, enabled=False):

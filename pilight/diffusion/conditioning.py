@@ -36,8 +36,10 @@ class ClipImageEmbedding(nn.Module):
 
         path = os.fspath(path)
         if not os.path.isdir(path):
-            raise FileNotFoundError(f"CLIP vision model directory not found: {path!r} (expected a "
-                                    "CLIPVisionModelWithProjection saved with save_pretrained; nothing is downloaded)")
+            raise FileNotFoundError(
+                f"CLIP vision model directory not found: {path!r} (expected a "
+                "CLIPVisionModelWithProjection saved with save_pretrained; nothing is downloaded)"
+            )
         self.model = CLIPVisionModelWithProjection.from_pretrained(path, local_files_only=True)
         self.model.requires_grad_(False).eval()
         self.image_size = int(self.model.config.image_size)
@@ -56,8 +58,9 @@ class ClipImageEmbedding(nn.Module):
         if images.ndim != 4 or images.shape[1] != 3:
             raise ValueError(f"expected images B x 3 x H x W in [-1, 1], got {tuple(images.shape)}")
         x = (images.float() + 1.0) / 2.0
-        x = F.interpolate(x, size=(self.image_size, self.image_size), mode="bicubic",
-                          align_corners=False, antialias=True).clamp(0.0, 1.0)
+        x = F.interpolate(
+            x, size=(self.image_size, self.image_size), mode="bicubic", align_corners=False, antialias=True
+        ).clamp(0.0, 1.0)
         x = (x - self.mean) / self.std
         dtype = next(self.model.parameters()).dtype
         return self.model(pixel_values=x.to(dtype)).image_embeds[:, None, :]
@@ -81,7 +84,9 @@ def make_conditioning(kind: str, path: str | None = None, dim: int | None = None
     """``kind`` = "clip" (ClipImageEmbedding(path)) or "learned" (LearnedEmbedding(dim))."""
     if kind == "clip":
         if not path:
-            raise ValueError("conditioning kind 'clip' needs a local CLIP vision model: set params key `model.clip_path`")
+            raise ValueError(
+                "conditioning kind 'clip' needs a local CLIP vision model: set params key `model.clip_path`"
+            )
         return ClipImageEmbedding(path)
     if kind == "learned":
         if dim is None:

@@ -39,19 +39,33 @@ class DomainDiffusion(nn.Module):
     read a zero latent instead of x_t; None (the paper) = every item reads x_t.
     """
 
-    def __init__(self, unet: nn.Module, conditioning: nn.Module, num_domains: int, cond_channels: int,
-                 num_views: int | None = None, cross_batch: bool | None = None, terminal_timestep: int | None = None):
+    def __init__(
+        self,
+        unet: nn.Module,
+        conditioning: nn.Module,
+        num_domains: int,
+        cond_channels: int,
+        num_views: int | None = None,
+        cross_batch: bool | None = None,
+        terminal_timestep: int | None = None,
+    ):
         super().__init__()
         cfg = unet.config
         if cfg.in_channels != cfg.out_channels + cond_channels:
-            raise ValueError(f"UNet input has {cfg.in_channels} channels but latent ({cfg.out_channels}) "
-                             f"+ condition ({cond_channels}) = {cfg.out_channels + cond_channels}")
+            raise ValueError(
+                f"UNet input has {cfg.in_channels} channels but latent ({cfg.out_channels}) "
+                f"+ condition ({cond_channels}) = {cfg.out_channels + cond_channels}"
+            )
         if cfg.class_embed_type != "projection" or cfg.projection_class_embeddings_input_dim != num_domains:
-            raise ValueError(f"UNet needs class_embed_type='projection' with {num_domains} inputs, has "
-                             f"{cfg.class_embed_type!r} with {cfg.projection_class_embeddings_input_dim}")
+            raise ValueError(
+                f"UNet needs class_embed_type='projection' with {num_domains} inputs, has "
+                f"{cfg.class_embed_type!r} with {cfg.projection_class_embeddings_input_dim}"
+            )
         if cfg.cross_attention_dim != conditioning.dim:
-            raise ValueError(f"conditioning {conditioning.name!r} gives {conditioning.dim}-dim embeddings but "
-                             f"the UNet's cross_attention_dim is {cfg.cross_attention_dim}")
+            raise ValueError(
+                f"conditioning {conditioning.name!r} gives {conditioning.dim}-dim embeddings but "
+                f"the UNet's cross_attention_dim is {cfg.cross_attention_dim}"
+            )
         self.unet = unet
         self.conditioning = conditioning
         self.num_domains = int(num_domains)
@@ -93,9 +107,17 @@ class DomainDiffusion(nn.Module):
         ehs = self.embed(images)
         return ehs if drop is None else torch.where(drop[:, None, None], null_like(ehs), ehs)
 
-    def forward(self, noisy_latents: torch.Tensor, cond_latents: torch.Tensor, timesteps: torch.Tensor,
-                domain_ids: torch.Tensor, encoder_hidden_states: torch.Tensor | None = None, *,
-                condition_images: torch.Tensor | None = None, drop: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(
+        self,
+        noisy_latents: torch.Tensor,
+        cond_latents: torch.Tensor,
+        timesteps: torch.Tensor,
+        domain_ids: torch.Tensor,
+        encoder_hidden_states: torch.Tensor | None = None,
+        *,
+        condition_images: torch.Tensor | None = None,
+        drop: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """v for every item. The cross-attention states are either given (``encoder_hidden_states``,
         one per item: the sampler's path) or embedded here from ``condition_images`` (one per sample,
         [-1, 1]), with the samples flagged in ``drop`` given the null state (classifier-free guidance
@@ -110,17 +132,23 @@ class DomainDiffusion(nn.Module):
                 raise ValueError(f"{ehs.shape[0]} condition images for a batch of {n} items")
             encoder_hidden_states = ehs.repeat_interleave(n // ehs.shape[0], 0)
         if noisy_latents.shape[1] != self.latent_channels:
-            raise ValueError(f"noisy latents have {noisy_latents.shape[1]} channels, the UNet predicts "
-                             f"{self.latent_channels} (codec/UNet channel mismatch)")
+            raise ValueError(
+                f"noisy latents have {noisy_latents.shape[1]} channels, the UNet predicts "
+                f"{self.latent_channels} (codec/UNet channel mismatch)"
+            )
         if cond_latents.shape[0] != n or cond_latents.shape[2:] != noisy_latents.shape[2:]:
-            raise ValueError(f"cond latents {tuple(cond_latents.shape)} do not match noisy latents "
-                             f"{tuple(noisy_latents.shape)} in batch/spatial size")
+            raise ValueError(
+                f"cond latents {tuple(cond_latents.shape)} do not match noisy latents "
+                f"{tuple(noisy_latents.shape)} in batch/spatial size"
+            )
         if cond_latents.shape[1] > self.cond_channels:
-            raise ValueError(f"cond latents have {cond_latents.shape[1]} channels, the UNet takes at most "
-                             f"{self.cond_channels}")
+            raise ValueError(
+                f"cond latents have {cond_latents.shape[1]} channels, the UNet takes at most {self.cond_channels}"
+            )
         if domain_ids.shape != (n,) or domain_ids.dtype != torch.long:
-            raise ValueError(f"domain_ids must be a long tensor of shape ({n},), got "
-                             f"{domain_ids.dtype} {tuple(domain_ids.shape)}")
+            raise ValueError(
+                f"domain_ids must be a long tensor of shape ({n},), got {domain_ids.dtype} {tuple(domain_ids.shape)}"
+            )
         if n % self.num_views:
             raise ValueError(f"batch {n} is not samples x num_views ({self.num_views})")
         if encoder_hidden_states.shape[0] != n:
@@ -141,5 +169,4 @@ class DomainDiffusion(nn.Module):
             cond_latents = F.pad(cond_latents, (0, 0, 0, 0, 0, pad))
         sample = torch.cat([noisy_latents, cond_latents.to(noisy_latents.dtype)], dim=1)
         onehot = F.one_hot(domain_ids, self.num_domains).to(noisy_latents.dtype)
-        return self.unet(sample, timesteps, encoder_hidden_states=encoder_hidden_states,
-                         class_labels=onehot).sample
+        return self.unet(sample, timesteps, encoder_hidden_states=encoder_hidden_states, class_labels=onehot).sample

@@ -23,11 +23,23 @@ from .schedule import make_train_scheduler, v_to_x0
 
 
 @torch.no_grad()
-def sample(model, cond_latents: torch.Tensor, domain_ids: torch.Tensor, encoder_hidden_states: torch.Tensor, *,
-           num_views: int, steps: int = 10, cfg_scale: float = 1.0, timestep_spacing: str = "trailing",
-           mode: str = "ddim", ensemble: int = 1, generator: torch.Generator | None = None,
-           null_hidden_states: torch.Tensor | None = None, scheduler_config: Any = None,
-           noise: torch.Tensor | None = None) -> torch.Tensor:
+def sample(
+    model,
+    cond_latents: torch.Tensor,
+    domain_ids: torch.Tensor,
+    encoder_hidden_states: torch.Tensor,
+    *,
+    num_views: int,
+    steps: int = 10,
+    cfg_scale: float = 1.0,
+    timestep_spacing: str = "trailing",
+    mode: str = "ddim",
+    ensemble: int = 1,
+    generator: torch.Generator | None = None,
+    null_hidden_states: torch.Tensor | None = None,
+    scheduler_config: Any = None,
+    noise: torch.Tensor | None = None,
+) -> torch.Tensor:
     """x0 latents (B*V x C x h x w) for ``B*V`` items (sample-major, V = ``num_views``).
 
     ``cond_latents``, ``domain_ids``, ``encoder_hidden_states`` have one entry per item;
@@ -48,8 +60,10 @@ def sample(model, cond_latents: torch.Tensor, domain_ids: torch.Tensor, encoder_
     if n % num_views:
         raise ValueError(f"{n} items are not samples x num_views ({num_views})")
     if domain_ids.shape != (n,) or encoder_hidden_states.shape[0] != n:
-        raise ValueError(f"need one domain id and one embedding per item ({n}), got {tuple(domain_ids.shape)} "
-                         f"and {tuple(encoder_hidden_states.shape)}")
+        raise ValueError(
+            f"need one domain id and one embedding per item ({n}), got {tuple(domain_ids.shape)} "
+            f"and {tuple(encoder_hidden_states.shape)}"
+        )
     if mode not in ("ddim", "single_step"):
         raise ValueError(f"unknown sampling mode {mode!r}; expected 'ddim' or 'single_step'")
     if ensemble < 1 or steps < 1:
@@ -66,22 +80,31 @@ def sample(model, cond_latents: torch.Tensor, domain_ids: torch.Tensor, encoder_
         raise ValueError(f"cfg_scale must be finite, got {cfg_scale}")
 
     if mode == "single_step" and ensemble > 1 and getattr(model, "terminal_timestep", None) is not None:
-        warnings.warn(f"ensemble={ensemble} with single-step sampling repeats one prediction: the model reads 0, "
-                      "not the noise, at t = T-1 (schedule.terminal_input: zero); it costs time and changes nothing",
-                      stacklevel=2)
+        warnings.warn(
+            f"ensemble={ensemble} with single-step sampling repeats one prediction: the model reads 0, "
+            "not the noise, at t = T-1 (schedule.terminal_input: zero); it costs time and changes nothing",
+            stacklevel=2,
+        )
 
     device = cond_latents.device
     dtype = next(model.parameters()).dtype
     config = scheduler_config if scheduler_config is not None else make_train_scheduler().config
-    scheduler = DDIMScheduler.from_config(config, prediction_type="v_prediction", timestep_spacing=timestep_spacing,
-                                          set_alpha_to_one=True, clip_sample=False, thresholding=False)
+    scheduler = DDIMScheduler.from_config(
+        config,
+        prediction_type="v_prediction",
+        timestep_spacing=timestep_spacing,
+        set_alpha_to_one=True,
+        clip_sample=False,
+        thresholding=False,
+    )
 
     shape = (ensemble * n, model.latent_channels, h, w)
     if noise is None:
         noise = torch.randn(shape, generator=generator, device=generator.device if generator else device)
     elif tuple(noise.shape) != shape:
-        raise ValueError(f"noise must have shape {shape} (ensemble x items, latent channels, h, w), "
-                         f"got {tuple(noise.shape)}")
+        raise ValueError(
+            f"noise must have shape {shape} (ensemble x items, latent channels, h, w), got {tuple(noise.shape)}"
+        )
     latents = noise.to(device=device, dtype=torch.float32)
 
     # Per-item inputs tiled over ensemble members, then over (cond, uncond) branches.
@@ -92,8 +115,10 @@ def sample(model, cond_latents: torch.Tensor, domain_ids: torch.Tensor, encoder_
     if guided:
         null = null_like(encoder_hidden_states) if null_hidden_states is None else null_hidden_states
         if null.shape != encoder_hidden_states.shape:
-            raise ValueError(f"null_hidden_states {tuple(null.shape)} must match encoder_hidden_states "
-                             f"{tuple(encoder_hidden_states.shape)}")
+            raise ValueError(
+                f"null_hidden_states {tuple(null.shape)} must match encoder_hidden_states "
+                f"{tuple(encoder_hidden_states.shape)}"
+            )
         cond = torch.cat([cond, torch.zeros_like(cond)])
         ids = torch.cat([ids, ids])
         ehs = torch.cat([ehs, null.to(device=device, dtype=dtype).repeat(ensemble, 1, 1)])
@@ -127,5 +152,7 @@ def _check_finite(x: torch.Tensor, name: str) -> None:
     bad = ~torch.isfinite(x.flatten(1) if x.ndim > 1 else x[:, None])
     if bool(bad.any()):
         items = bad.any(1).nonzero().flatten().tolist()
-        raise ValueError(f"sample: {name} holds NaN/Inf in {len(items)} item(s) (first: item {items[0]} of "
-                         f"{x.shape[0]}); the condition is broken upstream (image, codec or conditioning encoder)")
+        raise ValueError(
+            f"sample: {name} holds NaN/Inf in {len(items)} item(s) (first: item {items[0]} of "
+            f"{x.shape[0]}); the condition is broken upstream (image, codec or conditioning encoder)"
+        )

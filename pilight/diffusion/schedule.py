@@ -1,14 +1,15 @@
 """Noise schedule and the v-parameterisation, written once (paper Sec. Stage 1, "V-prediction").
 
 Stage 1 trains on ``L = MSE(v_pred * m_z, v_target * m_z)``; ``v_target`` is the
-v-prediction target of Salimans & Ho (2022):
+v-prediction target of Salimans & Ho (2022), diffusers' ``DDPMScheduler.get_velocity``:
 
     x_t = sqrt(a_t) x0 + sqrt(1 - a_t) eps
     v   = sqrt(a_t) eps - sqrt(1 - a_t) x0
     x0  = sqrt(a_t) x_t - sqrt(1 - a_t) v
     eps = sqrt(1 - a_t) x_t + sqrt(a_t) v
 
-with ``a_t = alphas_cumprod[t]``.  All helpers take a per-sample ``t`` of shape (B,)
+with ``a_t = alphas_cumprod[t]``; x_t itself comes from the diffusers scheduler's ``add_noise``.
+All helpers take a per-sample ``t`` of shape (B,)
 and broadcast it over the remaining dimensions.  They stay correct at a zero-SNR
 terminal step (``a_{T-1} = 0``): there ``x0 = -v``.
 """
@@ -19,20 +20,32 @@ import torch
 from diffusers import DDPMScheduler
 
 
-def make_train_scheduler(num_train_timesteps: int = 1000, beta_schedule: str = "scaled_linear",
-                         rescale_zero_snr: bool = False, timestep_spacing: str = "leading") -> DDPMScheduler:
+def make_train_scheduler(
+    num_train_timesteps: int = 1000,
+    beta_schedule: str = "scaled_linear",
+    rescale_zero_snr: bool = False,
+    timestep_spacing: str = "leading",
+) -> DDPMScheduler:
     """The training schedule (Stable Diffusion 2 betas by default) with v-prediction.
 
     ``clip_sample=False``: latents (VAE or pixel-unshuffled) are not bounded to [-1, 1]
     in general, so clipping the predicted x0 would be wrong for the VAE codec.
     """
-    return DDPMScheduler(num_train_timesteps=num_train_timesteps, beta_start=0.00085, beta_end=0.012,
-                         beta_schedule=beta_schedule, prediction_type="v_prediction", clip_sample=False,
-                         rescale_betas_zero_snr=rescale_zero_snr, timestep_spacing=timestep_spacing)
+    return DDPMScheduler(
+        num_train_timesteps=num_train_timesteps,
+        beta_start=0.00085,
+        beta_end=0.012,
+        beta_schedule=beta_schedule,
+        prediction_type="v_prediction",
+        clip_sample=False,
+        rescale_betas_zero_snr=rescale_zero_snr,
+        timestep_spacing=timestep_spacing,
+    )
 
 
-def sample_timesteps(n: int, num_train_timesteps: int, terminal_fraction: float = 0.0,
-                     generator: torch.Generator | None = None) -> torch.Tensor:
+def sample_timesteps(
+    n: int, num_train_timesteps: int, terminal_fraction: float = 0.0, generator: torch.Generator | None = None
+) -> torch.Tensor:
     """Training timesteps (n,): uniform over [0, T), then a ``terminal_fraction`` share set to T-1.
 
     Why the extra share at T-1: single-step inference evaluates the model only there (zero SNR:
@@ -64,18 +77,6 @@ def _coefficients(alphas_cumprod: torch.Tensor, t: torch.Tensor, like: torch.Ten
     a = a.clamp(0.0, 1.0)  # exact 0 at a zero-SNR terminal step; guard sqrt against rounding
     shape = (-1,) + (1,) * (like.ndim - 1)
     return a.sqrt().to(like.dtype).view(shape), (1.0 - a).sqrt().to(like.dtype).view(shape)
-
-
-def add_noise(x0: torch.Tensor, noise: torch.Tensor, alphas_cumprod: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-    """Forward process q(x_t | x0): sqrt(a) x0 + sqrt(1 - a) noise."""
-    sa, s1a = _coefficients(alphas_cumprod, t, x0)
-    return sa * x0 + s1a * noise
-
-
-def v_target(x0: torch.Tensor, noise: torch.Tensor, alphas_cumprod: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-    """v = sqrt(a) noise - sqrt(1 - a) x0 (the Stage 1 regression target)."""
-    sa, s1a = _coefficients(alphas_cumprod, t, x0)
-    return sa * noise - s1a * x0
 
 
 def v_to_x0(x_t: torch.Tensor, v: torch.Tensor, alphas_cumprod: torch.Tensor, t: torch.Tensor) -> torch.Tensor:

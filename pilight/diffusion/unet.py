@@ -61,13 +61,18 @@ def build_unet(spec: UNetSpec, in_channels: int, out_channels: int, num_domains:
         cfg[key] = tuple(cfg[key])
     if isinstance(cfg["attention_head_dim"], list):
         cfg["attention_head_dim"] = tuple(cfg["attention_head_dim"])
-    return UNet2DConditionModel(in_channels=in_channels, out_channels=out_channels,
-                                class_embed_type="projection",
-                                projection_class_embeddings_input_dim=num_domains, **cfg)
+    return UNet2DConditionModel(
+        in_channels=in_channels,
+        out_channels=out_channels,
+        class_embed_type="projection",
+        projection_class_embeddings_input_dim=num_domains,
+        **cfg,
+    )
 
 
-def load_pretrained_unet(path: str | os.PathLike, in_channels: int, num_domains: int,
-                         out_channels: int | None = None) -> UNet2DConditionModel:
+def load_pretrained_unet(
+    path: str | os.PathLike, in_channels: int, num_domains: int, out_channels: int | None = None
+) -> UNet2DConditionModel:
     """Load a local pretrained UNet (e.g. SD2's ``unet/`` folder) and adapt it to this task.
 
     * ``conv_in`` is widened to ``in_channels``: the pretrained kernel is kept for the first
@@ -83,16 +88,21 @@ def load_pretrained_unet(path: str | os.PathLike, in_channels: int, num_domains:
     """
     path = os.fspath(path)
     if not os.path.isdir(path):
-        raise FileNotFoundError(f"pretrained UNet directory not found: {path!r} (expected a diffusers "
-                                "UNet2DConditionModel saved with save_pretrained; nothing is downloaded)")
+        raise FileNotFoundError(
+            f"pretrained UNet directory not found: {path!r} (expected a diffusers "
+            "UNet2DConditionModel saved with save_pretrained; nothing is downloaded)"
+        )
     unet = UNet2DConditionModel.from_pretrained(path, local_files_only=True)
     cfg = unet.config
     if out_channels is not None and out_channels != cfg.out_channels:
-        raise ValueError(f"codec/UNet channel mismatch: the codec has {out_channels} latent channels "
-                         f"but the pretrained UNet at {path!r} predicts {cfg.out_channels}")
+        raise ValueError(
+            f"codec/UNet channel mismatch: the codec has {out_channels} latent channels "
+            f"but the pretrained UNet at {path!r} predicts {cfg.out_channels}"
+        )
     if in_channels < cfg.in_channels:
-        raise ValueError(f"in_channels {in_channels} is smaller than the pretrained UNet's "
-                         f"{cfg.in_channels} input channels")
+        raise ValueError(
+            f"in_channels {in_channels} is smaller than the pretrained UNet's {cfg.in_channels} input channels"
+        )
     if in_channels > cfg.in_channels:
         _widen_conv_in(unet, in_channels)
     _ensure_domain_embedding(unet, num_domains)
@@ -101,8 +111,15 @@ def load_pretrained_unet(path: str | os.PathLike, in_channels: int, num_domains:
 
 def _widen_conv_in(unet: UNet2DConditionModel, in_channels: int) -> None:
     old = unet.conv_in
-    new = torch.nn.Conv2d(in_channels, old.out_channels, old.kernel_size, old.stride, old.padding,
-                          dtype=old.weight.dtype, device=old.weight.device)
+    new = torch.nn.Conv2d(
+        in_channels,
+        old.out_channels,
+        old.kernel_size,
+        old.stride,
+        old.padding,
+        dtype=old.weight.dtype,
+        device=old.weight.device,
+    )
     with torch.no_grad():
         new.weight.zero_()
         new.weight[:, : old.in_channels] = old.weight  # pretrained path for the noisy latent
@@ -115,12 +132,16 @@ def _ensure_domain_embedding(unet: UNet2DConditionModel, num_domains: int) -> No
     cfg = unet.config
     if cfg.class_embed_type == "projection":
         if cfg.projection_class_embeddings_input_dim != num_domains:
-            raise ValueError(f"pretrained UNet's projection class embedding takes "
-                             f"{cfg.projection_class_embeddings_input_dim} inputs, expected {num_domains} domains")
+            raise ValueError(
+                f"pretrained UNet's projection class embedding takes "
+                f"{cfg.projection_class_embeddings_input_dim} inputs, expected {num_domains} domains"
+            )
         return
     if cfg.class_embed_type is not None or cfg.num_class_embeds is not None:
-        raise ValueError(f"pretrained UNet already has a class embedding of type {cfg.class_embed_type!r} "
-                         f"(num_class_embeds={cfg.num_class_embeds}); cannot add the one-hot domain embedding")
+        raise ValueError(
+            f"pretrained UNet already has a class embedding of type {cfg.class_embed_type!r} "
+            f"(num_class_embeds={cfg.num_class_embeds}); cannot add the one-hot domain embedding"
+        )
     time_embed_dim = unet.time_embedding.linear_2.out_features
     ref = unet.time_embedding.linear_1.weight
     # Same module diffusers builds for class_embed_type="projection" (default SiLU), so a

@@ -43,9 +43,11 @@ def table1(pred: dict[str, torch.Tensor], gt: dict[str, torch.Tensor], mask: tor
         if d not in pred:
             continue
         p, g = display01(d, pred[d], mask), display01(d, gt[d], mask)
-        out[d] = {"psnr": masked_psnr(p, g, mask),
-                  "ssim": float(structural_similarity_index_measure(p, g, data_range=1.0)),
-                  "lpips": float(lpips(p, g).mean()) if lpips is not None else None}
+        out[d] = {
+            "psnr": masked_psnr(p, g, mask),
+            "ssim": float(structural_similarity_index_measure(p, g, data_range=1.0)),
+            "lpips": float(lpips(p, g).mean()) if lpips is not None else None,
+        }
     if out:
         avg = lambda k: None if any(v[k] is None for v in out.values()) else sum(v[k] for v in out.values()) / len(out)
         out["average"] = {k: avg(k) for k in ("psnr", "ssim", "lpips")}
@@ -81,8 +83,10 @@ def _collect(shard_dir: Path, split: str, preds: dict) -> dict[str, torch.Tensor
     # scoring it on what is there, or not at all, would pass with a metric missing.
     for d, keys_without in lacking.items():
         if pr[d] and keys_without:
-            raise DataError(f"{split} image(s) {keys_without[:3]} have no predicted {d} while {len(pr[d])} others "
-                            "do; rerun infer_intrinsics")
+            raise DataError(
+                f"{split} image(s) {keys_without[:3]} have no predicted {d} while {len(pr[d])} others "
+                "do; rerun infer_intrinsics"
+            )
     if not any(pr.values()):
         raise DataError(f"no stage-1 predictions for the {split} split; rerun infer_intrinsics")
     out = {f"gt_{k}": torch.stack(v) for k, v in gt.items()}
@@ -90,8 +94,9 @@ def _collect(shard_dir: Path, split: str, preds: dict) -> dict[str, torch.Tensor
     return out
 
 
-def evaluate_intrinsics(shard_dir: Path, pred_dir: Path, split: str = "test", lpips=None,
-                        grid_images: int = 0) -> dict[str, dict]:
+def evaluate_intrinsics(
+    shard_dir: Path, pred_dir: Path, split: str = "test", lpips=None, grid_images: int = 0
+) -> dict[str, dict]:
     """{method: {metric: value}} for the model and each baseline (None where not applicable);
     with ``grid_images`` > 0 also "grid": an input | ground truth | prediction uint8 image."""
     preds = read_predictions(pred_dir, split)
@@ -109,16 +114,29 @@ def evaluate_intrinsics(shard_dir: Path, pred_dir: Path, split: str = "test", lp
     if "pred_albedo" in d:
         model["albedo_psnr"] = masked_psnr(d["pred_albedo"], d["gt_albedo"], mask)
     if "pred_normal" in d:
-        model.update({f"normal_{k}": v for k, v in normal_metrics(angular_errors(d["pred_normal"], d["gt_normal"], mask)).items()})
+        model.update(
+            {
+                f"normal_{k}": v
+                for k, v in normal_metrics(angular_errors(d["pred_normal"], d["gt_normal"], mask)).items()
+            }
+        )
     for k in SCALARS:
         if f"pred_{k}" in d:
             model[f"{k}_mae"] = masked_mae(d[f"pred_{k}"], d[f"gt_{k}"], mask)
     gt = {k: d[f"gt_{k}"] for k in DOMAINS}
     pred = {k: d[f"pred_{k}"] for k in DOMAINS if f"pred_{k}" in d}
-    base_maps = {"albedo": d["gt_image"].clamp(0, 1), "normal": facing,
-                 **{k: torch.full_like(d[f"gt_{k}"], means[k]) for k in SCALARS}}
-    out = {"model": model, "baseline": baseline, "train_means": means, "samples": int(mask.shape[0]),
-           "table1": {"model": table1(pred, gt, mask, lpips), "baseline": table1(base_maps, gt, mask, lpips)}}
+    base_maps = {
+        "albedo": d["gt_image"].clamp(0, 1),
+        "normal": facing,
+        **{k: torch.full_like(d[f"gt_{k}"], means[k]) for k in SCALARS},
+    }
+    out = {
+        "model": model,
+        "baseline": baseline,
+        "train_means": means,
+        "samples": int(mask.shape[0]),
+        "table1": {"model": table1(pred, gt, mask, lpips), "baseline": table1(base_maps, gt, mask, lpips)},
+    }
     if grid_images > 0 and pred:
         out["grid"] = grid(d["gt_image"][:grid_images], gt, pred, mask, grid_images)
     return out
@@ -126,7 +144,7 @@ def evaluate_intrinsics(shard_dir: Path, pred_dir: Path, split: str = "test", lp
 
 def grid(image: torch.Tensor, gt: dict, pred: dict, mask: torch.Tensor, n: int) -> np.ndarray:
     """One row per image: input | (ground truth, prediction) for each predicted intrinsic, labelled."""
-    from pilight.data.schema import to_uint8
+    from pilight.data.colour import to_uint8
     from pilight.eval.grids import labelled_grid
 
     domains = [d for d in DOMAINS if d in pred]
@@ -134,32 +152,50 @@ def grid(image: torch.Tensor, gt: dict, pred: dict, mask: torch.Tensor, n: int) 
     for i in range(min(n, image.shape[0])):
         tiles = [to_uint8(image[i], hdr=True)]
         for d in domains:
-            m = mask[i:i + 1]
-            tiles += [to_uint8(display01(d, x[d][i:i + 1], m)[0], hdr=False) for x in (gt, pred)]
+            m = mask[i : i + 1]
+            tiles += [to_uint8(display01(d, x[d][i : i + 1], m)[0], hdr=False) for x in (gt, pred)]
         rows.append(tiles)
     labels = ["input"] + [f"{d} {who}" for d in domains for who in ("truth", "model")]
     return labelled_grid(rows, labels)
 
 
 def markdown_table(result: dict, split: str) -> str:
-    rows = [("albedo PSNR (dB) ↑", "albedo_psnr", "input image"), ("normal mean error (°) ↓", "normal_mean_deg", "facing camera"),
-            ("normal median error (°) ↓", "normal_median_deg", "facing camera"),
-            ("normal within 11.25° ↑", "normal_within_11.25", "facing camera"), ("normal within 22.5° ↑", "normal_within_22.5", "facing camera"),
-            ("normal within 30° ↑", "normal_within_30.0", "facing camera"),
-            ("roughness MAE ↓", "roughness_mae", "train mean"), ("metallic MAE ↓", "metallic_mae", "train mean")]
+    rows = [
+        ("albedo PSNR (dB) ↑", "albedo_psnr", "input image"),
+        ("normal mean error (°) ↓", "normal_mean_deg", "facing camera"),
+        ("normal median error (°) ↓", "normal_median_deg", "facing camera"),
+        ("normal within 11.25° ↑", "normal_within_11.25", "facing camera"),
+        ("normal within 22.5° ↑", "normal_within_22.5", "facing camera"),
+        ("normal within 30° ↑", "normal_within_30.0", "facing camera"),
+        ("roughness MAE ↓", "roughness_mae", "train mean"),
+        ("metallic MAE ↓", "metallic_mae", "train mean"),
+    ]
     fmt = lambda v: "n/a" if v is None else f"{v:.3f}"
-    lines = [f"Stage 1 on the `{split}` split ({result['samples']} images, masked pixels)", "",
-             "| metric | model | baseline | baseline is |", "|---|---|---|---|"]
-    lines += [f"| {name} | {fmt(result['model'].get(key))} | {fmt(result['baseline'].get(key))} | {what} |" for name, key, what in rows]
+    lines = [
+        f"Stage 1 on the `{split}` split ({result['samples']} images, masked pixels)",
+        "",
+        "| metric | model | baseline | baseline is |",
+        "|---|---|---|---|",
+    ]
+    lines += [
+        f"| {name} | {fmt(result['model'].get(key))} | {fmt(result['baseline'].get(key))} | {what} |"
+        for name, key, what in rows
+    ]
     t1 = result.get("table1", {})
     if t1.get("model"):
         f2 = lambda v: "n/a" if v is None else f"{v:.3f}"
-        lines += ["", "The paper's Table 1 layout (display values in [0, 1], background zeroed; LPIPS: "
-                  f"{result.get('lpips_note', 'n/a')})", "",
-                  "| intrinsic | PSNR ↑ | SSIM ↑ | LPIPS ↓ | baseline PSNR | baseline SSIM | baseline LPIPS |",
-                  "|---|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            "The paper's Table 1 layout (display values in [0, 1], background zeroed; LPIPS: "
+            f"{result.get('lpips_note', 'n/a')})",
+            "",
+            "| intrinsic | PSNR ↑ | SSIM ↑ | LPIPS ↓ | baseline PSNR | baseline SSIM | baseline LPIPS |",
+            "|---|---|---|---|---|---|---|",
+        ]
         for d, m in t1["model"].items():
             b = t1["baseline"].get(d, {})
-            lines.append(f"| {d} | {f2(m['psnr'])} | {f2(m['ssim'])} | {f2(m['lpips'])} | {f2(b.get('psnr'))} | "
-                         f"{f2(b.get('ssim'))} | {f2(b.get('lpips'))} |")
+            lines.append(
+                f"| {d} | {f2(m['psnr'])} | {f2(m['ssim'])} | {f2(m['lpips'])} | {f2(b.get('psnr'))} | "
+                f"{f2(b.get('ssim'))} | {f2(b.get('lpips'))} |"
+            )
     return "\n".join(lines) + "\n"

@@ -30,15 +30,16 @@ import torch
 from pilight.lights import direction as direction_from_angles  # azimuth 0 = from the camera, +90 = camera-right
 from pilight.physics.shading import ball_from_direction
 
-PROBE_AZIMUTH_DEG = 60.0    # from the view axis toward camera-right (+) or camera-left (-)
+PROBE_AZIMUTH_DEG = 60.0  # from the view axis toward camera-right (+) or camera-left (-)
 PROBE_ELEVATION_DEG = 30.0  # above the camera's horizon
-PROBE_SIDE_SHARE = 0.05     # of the mask, facing each side
+PROBE_SIDE_SHARE = 0.05  # of the mask, facing each side
 PROBE_LIGHTS = ("left", "right", "target", "target_x2")
-SIDE_NORMAL_X = 0.2         # n_x beyond which a pixel faces right (or left, negated)
+SIDE_NORMAL_X = 0.2  # n_x beyond which a pixel faces right (or left, negated)
 
 
-def lr_asymmetry(d: torch.Tensor, normal: torch.Tensor, mask: torch.Tensor, thr: float = SIDE_NORMAL_X,
-                 eps: float = 1e-6) -> torch.Tensor:
+def lr_asymmetry(
+    d: torch.Tensor, normal: torch.Tensor, mask: torch.Tensor, thr: float = SIDE_NORMAL_X, eps: float = 1e-6
+) -> torch.Tensor:
     """(R - L) / (R + L) per image (B,): R, L = mean luminance of `d` over masked pixels whose
     (original, unflipped) normal faces right (n_x > thr) or left (n_x < -thr).
 
@@ -59,14 +60,13 @@ class ChangeR2:
         self.err = {"full": 0.0, "mask": 0.0}
         self.tot = {"full": 0.0, "mask": 0.0}
 
-    def update(self, pred_u: torch.Tensor, target_u: torch.Tensor, input_u: torch.Tensor,
-               mask: torch.Tensor) -> None:
+    def update(self, pred_u: torch.Tensor, target_u: torch.Tensor, input_u: torch.Tensor, mask: torch.Tensor) -> None:
         """Display values in [0, 1], (B, 3, H, W); mask (B, 1, H, W)."""
         dp, dt = (pred_u - input_u).double(), (target_u - input_u).double()
         m = (mask.double() > 0.5).expand_as(dt)
         for name, sel in (("full", torch.ones_like(m)), ("mask", m)):
             self.err[name] += float(((dp - dt) ** 2 * sel).sum())
-            self.tot[name] += float((dt ** 2 * sel).sum())
+            self.tot[name] += float((dt**2 * sel).sum())
 
     def compute(self) -> dict[str, float | None]:
         return {k: (1.0 - self.err[k] / self.tot[k]) if self.tot[k] > 0 else None for k in self.err}
@@ -88,13 +88,13 @@ def select_probes(batches, count: int) -> list[dict]:
     seen: set[str] = set()
     for b in batches:
         ok = sides_visible(b["normal"], b["mask"])
-        for i, key in enumerate(b["key"]):
+        for i, _key in enumerate(b["key"]):
             ma, mb = json.loads(b["meta_a"][i]), json.loads(b["meta_b"][i])
             image = f"{ma['scene']}_v{ma['view']:02d}_l{ma['light']:02d}"
             if ma["light"] == mb["light"] or image in seen or not ok[i]:
                 continue
             seen.add(image)
-            out.append({k: (v[i:i + 1] if torch.is_tensor(v) else [v[i]]) for k, v in b.items()})
+            out.append({k: (v[i : i + 1] if torch.is_tensor(v) else [v[i]]) for k, v in b.items()})
             if len(out) == count:
                 return out
     return out
@@ -147,8 +147,10 @@ def probe_batch(probe: dict) -> dict:
         twins |= {"target": lamb.float(), "target_x2": 2.0 * lamb.float()}
     else:
         twins |= {"target": balls["target"], "target_x2": balls["target_x2"]}
-    out = {k: (v.expand(len(PROBE_LIGHTS), *v.shape[1:]) if torch.is_tensor(v) else v * len(PROBE_LIGHTS))
-           for k, v in probe.items()}
+    out = {
+        k: (v.expand(len(PROBE_LIGHTS), *v.shape[1:]) if torch.is_tensor(v) else v * len(PROBE_LIGHTS))
+        for k, v in probe.items()
+    }
     out["ball_b"] = torch.cat([balls[n] for n in PROBE_LIGHTS])
     out["ball_lambertian_b"] = torch.cat([twins[n] for n in PROBE_LIGHTS])
     return out
@@ -164,13 +166,15 @@ def probe_scores(relit: dict[str, dict], probes: list[dict]) -> dict:
     mask = torch.cat([p["mask"] for p in probes])
     right, left = (torch.cat([get(p, n) for p in probes]) for n in ("right", "left"))
     one, two = (torch.cat([get(p, n) for p in probes]) for n in ("target", "target_x2"))
-    return {"probes": len(probes), "direction": direction_score(lr_asymmetry(right, normal, mask),
-                                                                lr_asymmetry(left, normal, mask)),
-            "linearity": linearity(one, two, mask),
-            "what": f"direction: share of {len(probes)} probe images whose relit left/right asymmetry (ground-truth "
-                    f"normals, mask) is larger under an analytic light from camera-right than from camera-left "
-                    f"(azimuth +-{PROBE_AZIMUTH_DEG:g}, elevation {PROBE_ELEVATION_DEG:g} deg; chance 0.5); "
-                    "linearity: median relit radiance ratio under the target ball x 2 and x 1 (mask; truth 2)"}
+    return {
+        "probes": len(probes),
+        "direction": direction_score(lr_asymmetry(right, normal, mask), lr_asymmetry(left, normal, mask)),
+        "linearity": linearity(one, two, mask),
+        "what": f"direction: share of {len(probes)} probe images whose relit left/right asymmetry (ground-truth "
+        f"normals, mask) is larger under an analytic light from camera-right than from camera-left "
+        f"(azimuth +-{PROBE_AZIMUTH_DEG:g}, elevation {PROBE_ELEVATION_DEG:g} deg; chance 0.5); "
+        "linearity: median relit radiance ratio under the target ball x 2 and x 1 (mask; truth 2)",
+    }
 
 
 def cross_light(batch: dict) -> dict | None:

@@ -46,21 +46,30 @@ TORCHVISION_NAME = {"alex": "alexnet", "vgg": "vgg16", "squeeze": "squeezenet1_1
 # Index (in torchvision's `features`) of the ReLU after which LPIPS taps a feature map; these are the
 # ends of torchmetrics' slices (alex: range(2), range(2, 5), ...; squeeze: range(2), range(2, 5), ...).
 TAPS = {"alex": (1, 4, 7, 9, 11), "vgg": (3, 8, 15, 22, 29), "squeeze": (1, 4, 7, 9, 10, 11, 12)}
-CHANNELS = {"alex": (64, 192, 384, 256, 256), "vgg": (64, 128, 256, 512, 512),
-            "squeeze": (64, 128, 256, 384, 384, 512, 512)}
+CHANNELS = {
+    "alex": (64, 192, 384, 256, 256),
+    "vgg": (64, 128, 256, 512, 512),
+    "squeeze": (64, 128, 256, 384, 384, 512, 512),
+}
 
 
 # --- backbones, as torchvision.models builds their `features` ------------------------------------
 
+
 def _alexnet_features() -> nn.Sequential:
     return nn.Sequential(
-        nn.Conv2d(3, 64, kernel_size=11, stride=4, padding=2), nn.ReLU(),
+        nn.Conv2d(3, 64, kernel_size=11, stride=4, padding=2),
+        nn.ReLU(),
         nn.MaxPool2d(kernel_size=3, stride=2),
-        nn.Conv2d(64, 192, kernel_size=5, padding=2), nn.ReLU(),
+        nn.Conv2d(64, 192, kernel_size=5, padding=2),
+        nn.ReLU(),
         nn.MaxPool2d(kernel_size=3, stride=2),
-        nn.Conv2d(192, 384, kernel_size=3, padding=1), nn.ReLU(),
-        nn.Conv2d(384, 256, kernel_size=3, padding=1), nn.ReLU(),
-        nn.Conv2d(256, 256, kernel_size=3, padding=1), nn.ReLU(),
+        nn.Conv2d(192, 384, kernel_size=3, padding=1),
+        nn.ReLU(),
+        nn.Conv2d(384, 256, kernel_size=3, padding=1),
+        nn.ReLU(),
+        nn.Conv2d(256, 256, kernel_size=3, padding=1),
+        nn.ReLU(),
         nn.MaxPool2d(kernel_size=3, stride=2),
     )
 
@@ -94,18 +103,31 @@ class _Fire(nn.Module):
 def _squeezenet1_1_features() -> nn.Sequential:
     pool = lambda: nn.MaxPool2d(kernel_size=3, stride=2, ceil_mode=True)  # noqa: E731
     return nn.Sequential(
-        nn.Conv2d(3, 64, kernel_size=3, stride=2), nn.ReLU(), pool(),
-        _Fire(64, 16, 64, 64), _Fire(128, 16, 64, 64), pool(),
-        _Fire(128, 32, 128, 128), _Fire(256, 32, 128, 128), pool(),
-        _Fire(256, 48, 192, 192), _Fire(384, 48, 192, 192), _Fire(384, 64, 256, 256), _Fire(512, 64, 256, 256),
+        nn.Conv2d(3, 64, kernel_size=3, stride=2),
+        nn.ReLU(),
+        pool(),
+        _Fire(64, 16, 64, 64),
+        _Fire(128, 16, 64, 64),
+        pool(),
+        _Fire(128, 32, 128, 128),
+        _Fire(256, 32, 128, 128),
+        pool(),
+        _Fire(256, 48, 192, 192),
+        _Fire(384, 48, 192, 192),
+        _Fire(384, 64, 256, 256),
+        _Fire(512, 64, 256, 256),
     )
 
 
 BACKBONES: dict[str, Callable[[], nn.Sequential]] = {
-    "alex": _alexnet_features, "vgg": _vgg16_features, "squeeze": _squeezenet1_1_features}
+    "alex": _alexnet_features,
+    "vgg": _vgg16_features,
+    "squeeze": _squeezenet1_1_features,
+}
 
 
 # --- LPIPS -------------------------------------------------------------------------------------
+
 
 class LPIPS(nn.Module):
     """lpips(pred, target): (B, 3, H, W) in [0, 1] -> (B,) LPIPS distances (lower = more similar).
@@ -144,7 +166,9 @@ class LPIPS(nn.Module):
             if x.ndim != 4 or x.shape[1] != 3:
                 raise ValueError(f"LPIPS expects (B, 3, H, W) images; got {name} of shape {tuple(x.shape)}")
             if not torch.isfinite(x).all() or x.min() < -1e-4 or x.max() > 1 + 1e-4:
-                raise ValueError(f"LPIPS expects {name} values in [0, 1]; got [{float(x.min()):.4g}, {float(x.max()):.4g}]")
+                raise ValueError(
+                    f"LPIPS expects {name} values in [0, 1]; got [{float(x.min()):.4g}, {float(x.max()):.4g}]"
+                )
         if pred.shape != target.shape:
             raise ValueError(f"LPIPS: pred {tuple(pred.shape)} and target {tuple(target.shape)} differ in shape")
         if self.shift.device != pred.device:
@@ -167,8 +191,10 @@ def bundled_lin_path(net: str) -> Path:
 def _load_lins(model: LPIPS, net: str) -> Path:
     path = bundled_lin_path(net)
     if not path.is_file():
-        raise FileNotFoundError(f"LPIPS linear-layer weights {path} not found: expected them bundled with torchmetrics "
-                                f"(functional/image/lpips_models/{net}.pth); is torchmetrics installed intact?")
+        raise FileNotFoundError(
+            f"LPIPS linear-layer weights {path} not found: expected them bundled with torchmetrics "
+            f"(functional/image/lpips_models/{net}.pth); is torchmetrics installed intact?"
+        )
     sd = torch.load(path, map_location="cpu", weights_only=True)  # tensors only: nothing untrusted is unpickled
     # torchmetrics' keys: lin{k}.model.1.weight (model.0 is a Dropout)
     want = {f"lin{k}.model.1.weight": lin.weight for k, lin in enumerate(model.lins)}
@@ -202,14 +228,17 @@ def _load_backbone(model: LPIPS, net: str, path: Path) -> None:
             f"{PARAM_KEY} = {str(path)!r} does not match the {tv} backbone ({how}): "
             f"missing keys {missing[:6]}{' ...' if len(missing) > 6 else ''} ({len(missing)}), "
             f"unexpected keys {unexpected[:6]}{' ...' if len(unexpected) > 6 else ''} ({len(unexpected)}); "
-            f"expected keys like {sorted(want)[:4]}")
+            f"expected keys like {sorted(want)[:4]}"
+        )
     bad = [f"{k}: {tuple(sd[k].shape)} != {tuple(v.shape)}" for k, v in want.items() if sd[k].shape != v.shape]
     if bad:
         raise ValueError(f"{PARAM_KEY} = {str(path)!r}: tensor shapes do not match the {tv} backbone: {bad[:6]}")
     model.features.load_state_dict({k: v.float() for k, v in sd.items()}, strict=True)
 
 
-def load_lpips(net: str, backbone_path: str | os.PathLike | None) -> tuple[Callable[[Tensor, Tensor], Tensor] | None, str]:
+def load_lpips(
+    net: str, backbone_path: str | os.PathLike | None
+) -> tuple[Callable[[Tensor, Tensor], Tensor] | None, str]:
     """(lpips, note). lpips(pred, target) maps (B, 3, H, W) images in [0, 1] to per-image LPIPS (B,).
 
     backbone_path None -> (None, reason): LPIPS is unavailable and is reported as null with the reason.
@@ -219,13 +248,18 @@ def load_lpips(net: str, backbone_path: str | os.PathLike | None) -> tuple[Calla
         raise ValueError(f"LPIPS net must be one of {sorted(TORCHVISION_NAME)}; got {net!r}")
     tv = TORCHVISION_NAME[net]
     if backbone_path is None:
-        return None, (f"unavailable: {PARAM_KEY} is not set (LPIPS-{net} needs the {tv} backbone weights from a "
-                      f"local safetensors file; nothing is downloaded)")
+        return None, (
+            f"unavailable: {PARAM_KEY} is not set (LPIPS-{net} needs the {tv} backbone weights from a "
+            f"local safetensors file; nothing is downloaded)"
+        )
     path = Path(backbone_path).expanduser()
     model = LPIPS(net)
     _load_backbone(model, net, path)
     lin_path = _load_lins(model, net)
     import torchmetrics
-    note = (f"LPIPS-{net}: {tv} backbone from {str(backbone_path)!r}, linear layers from torchmetrics "
-            f"{torchmetrics.__version__} ({lin_path.name})")
+
+    note = (
+        f"LPIPS-{net}: {tv} backbone from {str(backbone_path)!r}, linear layers from torchmetrics "
+        f"{torchmetrics.__version__} ({lin_path.name})"
+    )
     return model, note

@@ -41,8 +41,11 @@ def angular_errors(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> 
 def normal_metrics(errors_deg: torch.Tensor) -> dict[str, float | None]:
     if errors_deg.numel() == 0:
         return {"mean_deg": None, "median_deg": None, **{f"within_{t}": None for t in NORMAL_THRESHOLDS}}
-    return {"mean_deg": float(errors_deg.mean()), "median_deg": float(errors_deg.median()),
-            **{f"within_{t}": float((errors_deg < t).float().mean()) for t in NORMAL_THRESHOLDS}}
+    return {
+        "mean_deg": float(errors_deg.mean()),
+        "median_deg": float(errors_deg.median()),
+        **{f"within_{t}": float((errors_deg < t).float().mean()) for t in NORMAL_THRESHOLDS},
+    }
 
 
 def masked_mae(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> float | None:

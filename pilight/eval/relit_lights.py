@@ -7,14 +7,14 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from pilight.data.schema import to_uint8
+from pilight.data.colour import to_uint8
 from pilight.eval.grids import labelled_grid
 from pilight.lights import direction
 from pilight.physics import ball_from_light
 
 SWEEP_AZIMUTH_DEG = 120.0  # the lights run from -120 (camera-left, behind) to +120 (camera-right)
 SWEEP_ELEVATION_DEG = 30.0
-HEADER_PEAK = 0.9          # the header balls' brightest pixel (display), whatever each row's exposure
+HEADER_PEAK = 0.9  # the header balls' brightest pixel (display), whatever each row's exposure
 
 
 def sweep_directions(count: int) -> tuple[torch.Tensor, list[float]]:
@@ -46,6 +46,8 @@ def relit_lights_grid(predict, pairs: list[tuple[dict, dict]], count: int) -> np
         rep["ball_b"] = balls
         rep["ball_lambertian_b"] = balls  # analytic balls have no highlight: they are their own Lambertian twin
         out = predict(rep, {k: v.expand(count, *v.shape[1:]) for k, v in intr.items()})
-        rows.append([to_uint8(pair["image_a"][0], hdr=True)] + [to_uint8(out["relit"][i], hdr=True) for i in range(count)])
+        rows.append(
+            [to_uint8(pair["image_a"][0], hdr=True)] + [to_uint8(out["relit"][i], hdr=True) for i in range(count)]
+        )
     labels = ["input"] + [f"light {a:+.0f} deg" for a in az]
     return labelled_grid(rows, labels, row_labels=["light"] + [f"test {i + 1}" for i in range(len(pairs))])

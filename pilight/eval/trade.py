@@ -14,20 +14,36 @@ A setting reached by two factors is measured once.  Every point samples the same
 seed.  Seconds are wall-clock for the batched sampling calls only (no data loading), after one
 warm-up call.  A point is on the Pareto front when no other point is at least as fast and at
 least as accurate, and strictly better in one of the two.
+
+The trade stage (stages/trade.py) takes the images and pairs with ``first_n``, sweeps both stages
+with ``sweep_intrinsics`` / ``sweep_relight`` and writes everything with ``write_trade``.
 """
 
 from __future__ import annotations
 
+import json
 import time
-from typing import Callable
+from collections.abc import Callable
+from pathlib import Path
 
 import torch
 
 from pilight import atomic
 from pilight.params import SamplingParams, TradeParams
 
+# {metric: (column title, higher is better)} of each stage's points
+INTRINSICS_METRICS = {
+    "albedo_psnr": ("albedo PSNR (dB) ↑", True),
+    "normal_mean_deg": ("normal mean error (°) ↓", False),
+    "roughness_mae": ("roughness MAE ↓", False),
+    "metallic_mae": ("metallic MAE ↓", False),
+}
+RELIGHT_METRICS = {"relit_psnr": ("relit PSNR (dB) ↑", True), "relit_ssim": ("relit SSIM ↑", True)}
 
-def sweep_settings(base: SamplingParams, tp: TradeParams, cfg_scales: tuple[float, ...]) -> list[tuple[str, SamplingParams]]:
+
+def sweep_settings(
+    base: SamplingParams, tp: TradeParams, cfg_scales: tuple[float, ...]
+) -> list[tuple[str, SamplingParams]]:
     """(factor, settings) in sweep order, without duplicates (first factor wins the label)."""
     out: list[tuple[str, SamplingParams]] = []
     seen: set[tuple] = set()
@@ -66,18 +82,27 @@ def pareto(points: list[dict], cost: str, accuracy: str, higher_is_better: bool)
         if v is None:
             front.append(False)
             continue
-        dominated = any(w is not None and j != i and w[0] <= v[0] and w[1] >= v[1] and (w[0] < v[0] or w[1] > v[1])
-                        for j, w in enumerate(vals))
+        dominated = any(
+            w is not None and j != i and w[0] <= v[0] and w[1] >= v[1] and (w[0] < v[0] or w[1] > v[1])
+            for j, w in enumerate(vals)
+        )
         front.append(not dominated)
     return front
 
 
-def run_sweep(settings: list[tuple[str, SamplingParams]], predict: Callable[[SamplingParams, torch.Generator], object],
-              score: Callable[[object], dict[str, float | None]], count: int, seed: int,
-              progress: Callable[[str], None] | None = None) -> list[dict]:
+def run_sweep(
+    settings: list[tuple[str, SamplingParams]],
+    predict: Callable[[SamplingParams, torch.Generator], object],
+    score: Callable[[object], dict[str, float | None]],
+    count: int,
+    seed: int,
+    progress: Callable[[str], None] | None = None,
+) -> list[dict]:
     """Time ``predict`` (one pass over the sweep's images) for each setting and score its output."""
-    predict(settings[0][1].model_copy(update={"mode": "single_step", "ensemble": 1, "cfg_scale": 1.0}),
-            torch.Generator().manual_seed(seed))  # warm-up: first-call allocations are not any point's cost
+    predict(
+        settings[0][1].model_copy(update={"mode": "single_step", "ensemble": 1, "cfg_scale": 1.0}),
+        torch.Generator().manual_seed(seed),
+    )  # warm-up: first-call allocations are not any point's cost
     rows = []
     for factor, sp in settings:
         if progress is not None:
@@ -85,9 +110,19 @@ def run_sweep(settings: list[tuple[str, SamplingParams]], predict: Callable[[Sam
         t0 = time.perf_counter()
         out = predict(sp, torch.Generator().manual_seed(seed))
         seconds = (time.perf_counter() - t0) / count
-        rows.append({"factor": factor, "label": describe(sp), "mode": sp.mode,
-                     "steps": sp.steps, "spacing": sp.timestep_spacing,
-                     "cfg": sp.cfg_scale, "ensemble": sp.ensemble, "seconds_per_image": seconds, **score(out)})
+        rows.append(
+            {
+                "factor": factor,
+                "label": describe(sp),
+                "mode": sp.mode,
+                "steps": sp.steps,
+                "spacing": sp.timestep_spacing,
+                "cfg": sp.cfg_scale,
+                "ensemble": sp.ensemble,
+                "seconds_per_image": seconds,
+                **score(out),
+            }
+        )
     return rows
 
 
@@ -106,8 +141,11 @@ def markdown_table(rows: list[dict], metrics: dict[str, str], title: str) -> str
     for r in rows:
         cells = [fmt(r.get(k)) + (" *" if r.get(f"pareto_{k}") else "") for k in metrics]
         lines.append(f"| {r['factor']} | {r['label']} | {r['seconds_per_image']:.3f} | " + " | ".join(cells) + " |")
-    lines += ["", "`*`: on the Pareto front of that metric against seconds per image (no point is both at least as "
-              "fast and at least as accurate)."]
+    lines += [
+        "",
+        "`*`: on the Pareto front of that metric against seconds per image (no point is both at least as "
+        "fast and at least as accurate).",
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -126,7 +164,9 @@ def plot_png(rows: list[dict], metrics: dict[str, tuple[str, bool]], path, title
         front = sorted((r for r in rows if r.get(f"pareto_{key}")), key=lambda r: r["seconds_per_image"])
         ax.plot([r["seconds_per_image"] for r in front], [r[key] for r in front], "k--", lw=1, label="Pareto front")
         for r in front:
-            ax.annotate(r["label"], (r["seconds_per_image"], r[key]), fontsize=6, xytext=(3, 3), textcoords="offset points")
+            ax.annotate(
+                r["label"], (r["seconds_per_image"], r[key]), fontsize=6, xytext=(3, 3), textcoords="offset points"
+            )
         ax.set_xscale("log")
         ax.set_xlabel("seconds per image (log)")
         ax.set_ylabel(name)
@@ -136,3 +176,159 @@ def plot_png(rows: list[dict], metrics: dict[str, tuple[str, bool]], path, title
     fig.tight_layout()
     atomic.save_figure(fig, path, dpi=110, metadata={"Software": None})  # no version string: same data, same bytes
     plt.close(fig)
+
+
+# --- the trade stage's samples and sweeps ------------------------------------------------------
+def first_n(loader, n: int, keep=lambda batch, i: True) -> dict:
+    """The first n samples of a loader (optionally filtered), stacked into one batch dict."""
+    rows: dict[str, list] = {}
+    count = 0
+    for batch in loader:
+        for i in range(len(batch["key"])):
+            if count < n and keep(batch, i):
+                for k, v in batch.items():
+                    rows.setdefault(k, []).append(v[i])
+                count += 1
+        if count >= n:
+            break
+    if count == 0:
+        return {}
+    return {k: torch.stack(v) if hasattr(v[0], "shape") else list(v) for k, v in rows.items()}
+
+
+def chunks(batch: dict, size: int):
+    n = len(batch["key"])
+    for s in range(0, n, size):
+        yield {k: v[s : s + size] for k, v in batch.items()}
+
+
+def is_cross_light(batch: dict, i: int) -> bool:
+    """Pair i of a pairs batch is lit differently in its input and its target."""
+    return json.loads(batch["meta_a"][i])["light"] != json.loads(batch["meta_b"][i])["light"]
+
+
+def sweep_intrinsics(task, imgs: dict, ip, tp: TradeParams, seed: int, progress=None) -> list[dict]:
+    """Stage 1's points around ``ip`` (infer_intrinsics) on the images ``imgs``; ``task.predict(image,
+    domains, sampling, generator)`` as pilight.train.intrinsics.IntrinsicsTask's."""
+    from pilight.eval.metrics import angular_errors, masked_mae, masked_psnr
+
+    def predict(sp, gen):
+        outs = [task.predict(b["image"], ip.domains, sp, gen) for b in chunks(imgs, ip.batch_size)]
+        return {d: torch.cat([o[d] for o in outs]) for d in ip.domains}
+
+    def score(pred):
+        m = imgs["mask"]
+        s = {
+            "albedo_psnr": masked_psnr(pred["albedo"], imgs["albedo"], m) if "albedo" in pred else None,
+            "normal_mean_deg": float(angular_errors(pred["normal"], imgs["normal"], m).mean())
+            if "normal" in pred
+            else None,
+        }
+        s.update(
+            {f"{k}_mae": masked_mae(pred[k], imgs[k], m) if k in pred else None for k in ("roughness", "metallic")}
+        )
+        return s
+
+    rows = run_sweep(sweep_settings(ip, tp, tp.intrinsics_cfg), predict, score, len(imgs["key"]), seed, progress)
+    mark_fronts(rows, {k: hi for k, (_, hi) in INTRINSICS_METRICS.items()})
+    return rows
+
+
+def sweep_relight(task, pairs: dict, intr: dict, ip, tp: TradeParams, seed: int, progress=None) -> list[dict]:
+    """Stage 2's points around ``ip`` (relight_infer) on ``pairs`` conditioned on ``intr``; ``task.predict(batch,
+    sampling, generator, intrinsics)`` as pilight.train.relight.RelightTask's. Scored tone-mapped, like evaluate."""
+    from pilight.data.colour import tonemap01
+    from pilight.eval.metrics import psnr_per_image, ssim_per_image
+
+    n = len(pairs["key"])
+
+    def predict(sp, gen):
+        outs = []
+        for s in range(0, n, ip.batch_size):
+            sl = slice(s, s + ip.batch_size)
+            outs.append(
+                task.predict({k: v[sl] for k, v in pairs.items()}, sp, gen, {k: v[sl] for k, v in intr.items()})
+            )
+        return torch.cat([o["relit"] for o in outs])
+
+    def score(relit):
+        p, g = tonemap01(relit), tonemap01(pairs["image_b"])
+        return {"relit_psnr": float(psnr_per_image(p, g).mean()), "relit_ssim": float(ssim_per_image(p, g).mean())}
+
+    rows = run_sweep(sweep_settings(ip, tp, tp.relight_cfg), predict, score, n, seed, progress)
+    mark_fronts(rows, {k: hi for k, (_, hi) in RELIGHT_METRICS.items()})
+    return rows
+
+
+RELIT_LIGHTS_ROWS = 4  # test views in reports/relit_lights.png
+
+
+def lights_grid(task, shards: Path, split: str, ip, seed: int, preds: dict | None, lights: int):
+    """reports/relit_lights.png (pilight.eval.relit_lights): the first cross-light pair of each of the first
+    RELIT_LIGHTS_ROWS views of ``split``, relit under ``lights`` analytic lights, conditioned on ``preds``
+    (stage-1 predictions) when given, else on ground truth."""
+    from pilight.data.shards import eval_dataset, make_loader
+    from pilight.eval.relit_lights import relit_lights_grid
+    from pilight.relight.conditions import choose_intrinsics
+
+    views: set[tuple] = set()
+
+    def new_view(b, i):  # one row per test view: the first cross-light pair of each
+        m = json.loads(b["meta_a"][i])
+        if not is_cross_light(b, i) or (m["scene"], m["view"]) in views:
+            return False
+        views.add((m["scene"], m["view"]))
+        return True
+
+    shown = first_n(make_loader(eval_dataset(shards, split, "relight"), 8), RELIT_LIGHTS_ROWS, new_view)
+    shown_intr = choose_intrinsics(shown, torch.full((len(shown["key"]),), preds is not None), preds)
+    return relit_lights_grid(
+        lambda batch, c: task.predict(batch, ip, torch.Generator().manual_seed(seed), c),
+        [
+            ({k: v[i : i + 1] for k, v in shown.items()}, {k: v[i : i + 1] for k, v in shown_intr.items()})
+            for i in range(len(shown["key"]))
+        ],
+        lights,
+    )
+
+
+def write_trade(
+    rows1: list[dict], rows2: list[dict], n1: int, n2: int, conditions: str, metrics: Path, plots: Path, reports: Path
+) -> str:
+    """metrics (every point), plots/trade_<stage>[_pareto_<metric>].json, reports/trade_<stage>.png and
+    reports/trade.md; returns the markdown."""
+    for d in (metrics.parent, plots, reports):
+        d.mkdir(parents=True, exist_ok=True)
+    result = {
+        "intrinsics": {"images": n1, "points": rows1},
+        "relight": {"pairs": n2, "conditions": conditions, "points": rows2},
+    }
+    atomic.write_json(metrics, result)
+    for name, rows, columns in (("intrinsics", rows1, INTRINSICS_METRICS), ("relight", rows2, RELIGHT_METRICS)):
+        atomic.write_json(plots / f"trade_{name}.json", rows)
+        for key in columns:
+            front = sorted((r for r in rows if r.get(f"pareto_{key}")), key=lambda r: r["seconds_per_image"])
+            atomic.write_json(plots / f"trade_{name}_pareto_{key}.json", front)
+        plot_png(
+            rows,
+            columns,
+            reports / f"trade_{name}.png",
+            f"{'Stage 1' if name == 'intrinsics' else 'Stage 2'}: seconds per image vs accuracy "
+            f"({n1 if name == 'intrinsics' else n2} test {'images' if name == 'intrinsics' else 'pairs'})",
+        )
+    md = (
+        markdown_table(
+            rows1,
+            {k: v for k, (v, _) in INTRINSICS_METRICS.items()},
+            f"Stage 1 speed/accuracy trade ({n1} test images, around `infer_intrinsics`)",
+        )
+        + "\n"
+        + markdown_table(
+            rows2,
+            {k: v for k, (v, _) in RELIGHT_METRICS.items()},
+            f"Stage 2 speed/accuracy trade ({n2} cross-light test pairs, conditions: "
+            f"{conditions}, around `relight_infer`)",
+        )
+    )
+    atomic.write_text(reports / "trade.md", md)
+    return md

@@ -25,7 +25,7 @@ import torch
 from .envmap import BALL_ALBEDO, ball_to_envmap
 from .shading import diffuse_shading
 
-F0_DIELECTRIC = 0.04       # Principled BSDF's specular layer at IOR 1.5, the gray ball's
+F0_DIELECTRIC = 0.04  # Principled BSDF's specular layer at IOR 1.5, the gray ball's
 METAL_SPECULAR_SCALE = 0.5  # measured on the default's test pairs: change_r2 on the mask 0.10 -> 0.29 (README)
 
 
@@ -35,8 +35,9 @@ def _unfolded_lookup(ball: torch.Tensor, normal: torch.Tensor, mask: torch.Tenso
     return diffuse_shading(env, normal.float(), None if mask is None else mask.float())
 
 
-def diffuse_calculated(ball: torch.Tensor, normal: torch.Tensor, mask: torch.Tensor,
-                       metallic: torch.Tensor) -> torch.Tensor:
+def diffuse_calculated(
+    ball: torch.Tensor, normal: torch.Tensor, mask: torch.Tensor, metallic: torch.Tensor
+) -> torch.Tensor:
     """D_calc = Lambertian lookup of the unfolded ball, times (1 - metallic) (our render contract)."""
     return _unfolded_lookup(ball, normal, mask) * (1.0 - metallic.float())
 
@@ -47,8 +48,14 @@ def metal_fresnel(albedo: torch.Tensor, metallic: torch.Tensor) -> torch.Tensor:
     return (1.0 - m) + m * albedo.float() / F0_DIELECTRIC * METAL_SPECULAR_SCALE
 
 
-def specular_calculated(ball: torch.Tensor, ball_lambertian: torch.Tensor, normal: torch.Tensor,
-                        mask: torch.Tensor, albedo: torch.Tensor, metallic: torch.Tensor) -> torch.Tensor:
+def specular_calculated(
+    ball: torch.Tensor,
+    ball_lambertian: torch.Tensor,
+    normal: torch.Tensor,
+    mask: torch.Tensor,
+    albedo: torch.Tensor,
+    metallic: torch.Tensor,
+) -> torch.Tensor:
     """S_calc = F(m, A) * lookup(ball - ball_lambertian) (module docstring); >= 0.
 
     An analytic ball (``ball_from_direction``) is Lambertian itself: pass it as both balls and

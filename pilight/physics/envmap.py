@@ -54,8 +54,10 @@ def check_finite(x: torch.Tensor, what: str, where: torch.Tensor | None = None) 
         bad = bad & where
     if bool(bad.any()):
         first = [int(i) for i in bad.nonzero()[0]]
-        raise ValueError(f"{what}: {int(bad.sum())} non-finite value(s) (NaN/Inf), the first at index {first} "
-                         f"of shape {tuple(x.shape)}")
+        raise ValueError(
+            f"{what}: {int(bad.sum())} non-finite value(s) (NaN/Inf), the first at index {first} "
+            f"of shape {tuple(x.shape)}"
+        )
 
 
 def _check_size(height: int, width: int, what: str) -> None:
@@ -107,8 +109,9 @@ def normal_to_uv(normals: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
     return torch.stack([u, v], -1)
 
 
-def ball_to_envmap(ball: torch.Tensor, valid: torch.Tensor | None = None,
-                   height: int = ENV_H, width: int = ENV_W, eps: float = 1e-3):
+def ball_to_envmap(
+    ball: torch.Tensor, valid: torch.Tensor | None = None, height: int = ENV_H, width: int = ENV_W, eps: float = 1e-3
+):
     """Unfold a gray light ball into ``(E_diff, envmap_valid)`` (``B x C x h x w``, ``B x 1 x h x w``).
 
     Paper: "given a gray ball ... we convert it into an environment map
@@ -148,6 +151,6 @@ def ball_to_envmap(ball: torch.Tensor, valid: torch.Tensor | None = None,
     src = torch.arange(width, device=ball.device).clamp(cols[0], cols[-1])
     env = env.index_select(3, src)
     visible = torch.zeros(width, device=ball.device, dtype=work.dtype)
-    visible[cols[0]:cols[-1] + 1] = 1
+    visible[cols[0] : cols[-1] + 1] = 1
     env_valid = seen * visible
     return env.to(ball.dtype), env_valid.to(ball.dtype)

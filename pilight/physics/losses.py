@@ -28,8 +28,9 @@ def _reduce(per_sample: torch.Tensor, reduction: str) -> torch.Tensor:
     raise ValueError(f"reduction must be 'mean' or 'none', got {reduction!r}")
 
 
-def masked_mse(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None,
-               reduction: str = "mean") -> torch.Tensor:
+def masked_mse(
+    a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None, reduction: str = "mean"
+) -> torch.Tensor:
     """Per-sample mean of ``(a-b)^2`` over valid pixels and channels; 0 for an empty mask.
 
     The denominator is clamped, not the result: with an all-zero mask the
@@ -115,7 +116,8 @@ class Dinov2Features(nn.Module):
         if not os.path.isfile(os.path.join(path, "config.json")):
             raise FileNotFoundError(
                 f"DINOv2 weights not found at {path!r} (expected a save_pretrained folder "
-                "with config.json); download them before training, nothing is fetched at run time")
+                "with config.json); download them before training, nothing is fetched at run time"
+            )
         self.model = Dinov2Model.from_pretrained(path, local_files_only=True)
         self.model.requires_grad_(False).eval()
         self.patch = int(self.model.config.patch_size)
@@ -131,8 +133,10 @@ class Dinov2Features(nn.Module):
 
     def _size(self, h: int, w: int) -> tuple[int, int]:
         s = self.resolution / min(h, w)
-        return (max(self.patch, round(h * s / self.patch) * self.patch),
-                max(self.patch, round(w * s / self.patch) * self.patch))
+        return (
+            max(self.patch, round(h * s / self.patch) * self.patch),
+            max(self.patch, round(w * s / self.patch) * self.patch),
+        )
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         dtype = self.model.dtype
@@ -148,8 +152,10 @@ def make_feature_extractor(kind: str, path: str | None = None, **kw) -> nn.Modul
     """``kind``: ``"dinov2"`` (needs ``path``) or ``"pooled-rgb"``.  No silent fallback."""
     if kind == "dinov2":
         if not path:
-            raise ValueError("feature extractor 'dinov2' needs a local weights path; "
-                             "configure one or choose kind='pooled-rgb' explicitly")
+            raise ValueError(
+                "feature extractor 'dinov2' needs a local weights path; "
+                "configure one or choose kind='pooled-rgb' explicitly"
+            )
         return Dinov2Features(path, **kw)
     if kind == "pooled-rgb":
         return PooledRGBFeatures(**kw)

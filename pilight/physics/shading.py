@@ -49,8 +49,9 @@ def _per_batch(x, b: int, ref: torch.Tensor) -> torch.Tensor:
     return t[..., None, None]
 
 
-def ball_from_direction(direction, intensity=1.0, ambient=0.0, size: int = 256,
-                        dtype=torch.float32, device=None) -> torch.Tensor:
+def ball_from_direction(
+    direction, intensity=1.0, ambient=0.0, size: int = 256, dtype=torch.float32, device=None
+) -> torch.Tensor:
     """Gray ball lit by a distant light: ``ball = 0.5 * (intensity * max(0, n.l) + ambient)``.
 
     ``direction`` (``3`` or ``B x 3``, camera space, pointing *toward* the
@@ -88,8 +89,13 @@ def hdri_directions(height: int, width: int, device=None, dtype=torch.float32):
     return d.to(dtype), dw[:, None].to(dtype)
 
 
-def ball_from_hdri(hdri: torch.Tensor, world_to_camera: torch.Tensor, size: int = 256,
-                   env_res: tuple[int, int] = (32, 64), chunk: int = 8192) -> torch.Tensor:
+def ball_from_hdri(
+    hdri: torch.Tensor,
+    world_to_camera: torch.Tensor,
+    size: int = 256,
+    env_res: tuple[int, int] = (32, 64),
+    chunk: int = 8192,
+) -> torch.Tensor:
     """Gray ball under a Blender world HDRI, by brute-force irradiance over a downsampled HDRI.
 
     ``hdri``: ``B x 3 x H x W`` (or ``3 x H x W``) linear radiance in Cycles'
@@ -123,10 +129,9 @@ def ball_from_hdri(hdri: torch.Tensor, world_to_camera: torch.Tensor, size: int 
     bb = max(b, R.shape[0])
     out = []
     for s in range(0, n.shape[0], chunk):
-        c = torch.einsum("pi,bik->bpk", n[s:s + chunk], dirs_cam.expand(bb, 3, -1))
+        c = torch.einsum("pi,bik->bpk", n[s : s + chunk], dirs_cam.expand(bb, 3, -1))
         c = c.clamp_min(0.0) * dw
-        out.append(torch.einsum("bpk,bck->bcp", c, rad.expand(bb, ch, -1))
-                   / c.sum(-1)[:, None].clamp_min(1e-12))
+        out.append(torch.einsum("bpk,bck->bcp", c, rad.expand(bb, ch, -1)) / c.sum(-1)[:, None].clamp_min(1e-12))
     d = torch.cat(out, -1).reshape(bb, ch, size, size)
     return BALL_ALBEDO * d * inside
 

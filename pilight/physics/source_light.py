@@ -20,11 +20,11 @@ import torch
 
 from .envmap import BALL_ALBEDO, ball_normals
 
-MIN_PIXELS = 32     # fewer usable pixels than this cannot pin nine coefficients down
-RIDGE = 1e-6        # Tikhonov weight, relative to the normal matrix's mean diagonal (front-facing normals
-                    # leave the basis nearly collinear)
+MIN_PIXELS = 32  # fewer usable pixels than this cannot pin nine coefficients down
+RIDGE = 1e-6  # Tikhonov weight, relative to the normal matrix's mean diagonal (front-facing normals
+# leave the basis nearly collinear)
 METALLIC_MAX = 0.5  # pixels more metallic than this have no diffuse lobe to fit
-ALBEDO_MIN = 0.02   # black pixels carry no shading
+ALBEDO_MIN = 0.02  # black pixels carry no shading
 
 
 class SourceLightError(ValueError):
@@ -37,8 +37,13 @@ def sh_basis(normal: torch.Tensor) -> torch.Tensor:
     return torch.stack([torch.ones_like(x), x, y, z, x * y, y * z, x * z, x * x - y * y, 3 * z * z - 1], 1)
 
 
-def fit_diffuse_sh_found(image: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor, mask: torch.Tensor,
-                         metallic: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def fit_diffuse_sh_found(
+    image: torch.Tensor,
+    albedo: torch.Tensor,
+    normal: torch.Tensor,
+    mask: torch.Tensor,
+    metallic: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, 3, 9) coefficients c with image ~ albedo * sum_k c_k Y_k(normal) on usable pixels (masked,
     albedo above ALBEDO_MIN, and dielectric (metallic < METALLIC_MAX) unless fewer than MIN_PIXELS
     are), and (B,) usable-pixel counts; an image with fewer than MIN_PIXELS keeps c = 0."""
@@ -63,15 +68,22 @@ def fit_diffuse_sh_found(image: torch.Tensor, albedo: torch.Tensor, normal: torc
     return out, counts
 
 
-def fit_diffuse_sh(image: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor, mask: torch.Tensor,
-                   metallic: torch.Tensor | None = None) -> torch.Tensor:
+def fit_diffuse_sh(
+    image: torch.Tensor,
+    albedo: torch.Tensor,
+    normal: torch.Tensor,
+    mask: torch.Tensor,
+    metallic: torch.Tensor | None = None,
+) -> torch.Tensor:
     """fit_diffuse_sh_found's coefficients; SourceLightError naming the first image with too few pixels."""
     coeffs, counts = fit_diffuse_sh_found(image, albedo, normal, mask, metallic)
     short = (counts < MIN_PIXELS).nonzero().flatten().tolist()
     if short:
         i = short[0]
-        raise SourceLightError(f"image {i}: {int(counts[i])} usable pixels (masked, dielectric, albedo > "
-                               f"{ALBEDO_MIN}); at least {MIN_PIXELS} are needed to estimate its light")
+        raise SourceLightError(
+            f"image {i}: {int(counts[i])} usable pixels (masked, dielectric, albedo > "
+            f"{ALBEDO_MIN}); at least {MIN_PIXELS} are needed to estimate its light"
+        )
     return coeffs
 
 
@@ -82,15 +94,27 @@ def sh_ball(coeffs: torch.Tensor, size: int) -> torch.Tensor:
     return BALL_ALBEDO * d * inside
 
 
-def estimate_source_ball(image: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor, mask: torch.Tensor,
-                         size: int, metallic: torch.Tensor | None = None) -> torch.Tensor:
+def estimate_source_ball(
+    image: torch.Tensor,
+    albedo: torch.Tensor,
+    normal: torch.Tensor,
+    mask: torch.Tensor,
+    size: int,
+    metallic: torch.Tensor | None = None,
+) -> torch.Tensor:
     """The Lambertian ball of the light ``image`` was lit by (module docstring), (B, 3, size, size).
     SourceLightError when an image has too few usable pixels."""
     return sh_ball(fit_diffuse_sh(image, albedo, normal, mask, metallic), size)
 
 
-def estimate_source_balls(image: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor, mask: torch.Tensor,
-                          size: int, metallic: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def estimate_source_balls(
+    image: torch.Tensor,
+    albedo: torch.Tensor,
+    normal: torch.Tensor,
+    mask: torch.Tensor,
+    size: int,
+    metallic: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Per image: (balls (B, 3, size, size), found (B,) bool); an image with too few usable pixels
     gets a black ball and found = False, for the caller to handle (none is guessed)."""
     coeffs, counts = fit_diffuse_sh_found(image, albedo, normal, mask, metallic)

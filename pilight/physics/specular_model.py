@@ -46,34 +46,40 @@ def fit_directional(lambertian_ball: torch.Tensor) -> tuple[torch.Tensor, torch.
     Lambertian ball is closest (least squares over the disk) to ``lambertian_ball`` (B x 3 x h x w)."""
     n, disk = ball_normals(*lambertian_ball.shape[-2:], device=lambertian_ball.device)
     inside = disk[0, 0].flatten() > 0
-    normals = n[0].flatten(1)[:, inside]                                      # (3, K)
-    d = (lambertian_ball.float().flatten(2)[:, :, inside] / BALL_ALBEDO)      # (B, 3, K)
-    cand = sphere_directions().to(d.device)                                   # (C, 3)
-    cos = (cand @ normals).clamp_min(0.0)                                     # (C, K)
+    normals = n[0].flatten(1)[:, inside]  # (3, K)
+    d = lambertian_ball.float().flatten(2)[:, :, inside] / BALL_ALBEDO  # (B, 3, K)
+    cand = sphere_directions().to(d.device)  # (C, 3)
+    cos = (cand @ normals).clamp_min(0.0)  # (C, K)
     k = float(normals.shape[1])
-    gray = d.mean(1)                                                          # (B, K)
+    gray = d.mean(1)  # (B, K)
     # per (candidate, image): min over (I, a) of |I cos + a - gray|^2, in closed form
-    s_cc, s_c = (cos * cos).sum(1)[:, None], cos.sum(1)[:, None]              # (C, 1)
-    s_cy, s_y = cos @ gray.T, gray.sum(1)[None]                               # (C, B), (1, B)
+    s_cc, s_c = (cos * cos).sum(1)[:, None], cos.sum(1)[:, None]  # (C, 1)
+    s_cy, s_y = cos @ gray.T, gray.sum(1)[None]  # (C, B), (1, B)
     det = (k * s_cc - s_c * s_c).clamp_min(1e-9)
     i_fit = (k * s_cy - s_c * s_y) / det
     a_fit = (s_cc * s_y - s_c * s_cy) / det
-    resid = (gray * gray).sum(1)[None] - i_fit * s_cy - a_fit * s_y           # |y|^2 - theta . X^T y
+    resid = (gray * gray).sum(1)[None] - i_fit * s_cy - a_fit * s_y  # |y|^2 - theta . X^T y
     resid = torch.where(i_fit > 0, resid, torch.full_like(resid, float("inf")))
-    best = resid.argmin(0)                                                    # (B,)
+    best = resid.argmin(0)  # (B,)
     l = cand[best]
-    c = cos[best]                                                             # (B, K)
+    c = cos[best]  # (B, K)
     # per channel with the chosen l
     cc, c1 = (c * c).sum(1, keepdim=True), c.sum(1, keepdim=True)
-    cy, y1 = (c[:, None] * d).sum(-1), d.sum(-1)                              # (B, 3)
+    cy, y1 = (c[:, None] * d).sum(-1), d.sum(-1)  # (B, 3)
     det_b = (k * cc - c1 * c1).clamp_min(1e-9)
     intensity = ((k * cy - c1 * y1) / det_b).clamp_min(0.0)
     ambient = ((cc * y1 - c1 * cy) / det_b).clamp_min(0.0)
     return l, intensity, ambient
 
 
-def ggx_specular(normal: torch.Tensor, roughness: torch.Tensor, f0: torch.Tensor, light_dir: torch.Tensor,
-                 intensity: torch.Tensor, ambient: torch.Tensor) -> torch.Tensor:
+def ggx_specular(
+    normal: torch.Tensor,
+    roughness: torch.Tensor,
+    f0: torch.Tensor,
+    light_dir: torch.Tensor,
+    intensity: torch.Tensor,
+    ambient: torch.Tensor,
+) -> torch.Tensor:
     """S (B x 3 x H x W) of the module docstring. normal B x 3 x H x W (0 off the mask gives 0),
     roughness B x 1 x H x W, f0 B x 3|1 x H x W, light_dir / intensity / ambient (B, 3)."""
     n = normal.float()
@@ -88,7 +94,9 @@ def ggx_specular(normal: torch.Tensor, roughness: torch.Tensor, f0: torch.Tensor
     alpha = (roughness.float() ** 2).clamp_min(ALPHA_MIN)
     a2 = alpha * alpha
     d = a2 / (math.pi * (nh * nh * (a2 - 1.0) + 1.0) ** 2)
-    vis = 0.5 / (nl * torch.sqrt(nv * nv * (1.0 - a2) + a2) + nv * torch.sqrt(nl * nl * (1.0 - a2) + a2)).clamp_min(1e-6)
+    vis = 0.5 / (nl * torch.sqrt(nv * nv * (1.0 - a2) + a2) + nv * torch.sqrt(nl * nl * (1.0 - a2) + a2)).clamp_min(
+        1e-6
+    )
     fres = f0 + (1.0 - f0) * (1.0 - vh) ** 5
     direct = math.pi * intensity[:, :, None, None] * d * vis * fres * nl
     lit = (n.abs().sum(1, keepdim=True) > 0).float()
@@ -101,8 +109,13 @@ def principled_f0(albedo: torch.Tensor, metallic: torch.Tensor) -> torch.Tensor:
     return F0_DIELECTRIC * (1.0 - m) + albedo.float() * m
 
 
-def specular_from_ball(lambertian_ball: torch.Tensor, normal: torch.Tensor, roughness: torch.Tensor,
-                       albedo: torch.Tensor, metallic: torch.Tensor) -> torch.Tensor:
+def specular_from_ball(
+    lambertian_ball: torch.Tensor,
+    normal: torch.Tensor,
+    roughness: torch.Tensor,
+    albedo: torch.Tensor,
+    metallic: torch.Tensor,
+) -> torch.Tensor:
     """S of each pixel under the light of ``lambertian_ball`` (module docstring)."""
     l, i, a = fit_directional(lambertian_ball)
     return ggx_specular(normal, roughness, principled_f0(albedo, metallic), l, i, a)

@@ -32,13 +32,17 @@ from pilight.physics.calculated import diffuse_calculated
 
 BRANCHES = ("relit", "diffuse", "specular")  # one-hot order = domain ids 0, 1, 2
 TARGETS = {"relit": "image_b", "diffuse": "diffuse_b", "specular": "specular_b"}
-BRANCH_MAPS = {"relit": ("image", "albedo"), "diffuse": ("normal", "ball", "mask"),
-               "specular": ("normal", "ball", "metallic", "roughness", "mask")}
+BRANCH_MAPS = {
+    "relit": ("image", "albedo"),
+    "diffuse": ("normal", "ball", "mask"),
+    "specular": ("normal", "ball", "metallic", "roughness", "mask"),
+}
 ABLATION_MAPS = ("image", "albedo", "normal", "ball", "metallic", "roughness", "mask")  # decomposition: false
 
 
-def branch_layout(decomposition: bool, d_calc_branches: tuple[str, ...] = (),
-                  physics_first: bool = False) -> dict[str, tuple[str, ...]]:
+def branch_layout(
+    decomposition: bool, d_calc_branches: tuple[str, ...] = (), physics_first: bool = False
+) -> dict[str, tuple[str, ...]]:
     """Condition maps per branch. ``d_calc_branches`` (relight.d_calc_condition) also get "d_calc";
     without decomposition the one branch gets it when any branch is named (the ablation keeps every
     input, as with ABLATION_MAPS). ``physics_first``: PHYSICS_FIRST_MAPS."""
@@ -54,8 +58,13 @@ def cond_width(decomposition: bool, d_calc_branches: tuple[str, ...] = (), physi
     return max(len(m) for m in branch_layout(decomposition, d_calc_branches, physics_first).values())
 
 
-def condition_images(image_a: torch.Tensor, intr: dict[str, torch.Tensor], ball: torch.Tensor,
-                     mask: torch.Tensor, with_d_calc: bool = False) -> dict[str, torch.Tensor]:
+def condition_images(
+    image_a: torch.Tensor,
+    intr: dict[str, torch.Tensor],
+    ball: torch.Tensor,
+    mask: torch.Tensor,
+    with_d_calc: bool = False,
+) -> dict[str, torch.Tensor]:
     """Every condition map as a (B, 3, H, W) image in [-1, 1] (linear inputs, schema mappings).
 
     ``with_d_calc`` adds "d_calc": the Lambertian lookup of this (gray) ball with the CONDITIONING
@@ -65,18 +74,23 @@ def condition_images(image_a: torch.Tensor, intr: dict[str, torch.Tensor], ball:
     h, w = image_a.shape[-2:]
     up = F.interpolate(ball.float(), size=(h, w), mode="bilinear", align_corners=False).clamp_min(0)
     rep = lambda x: x.expand(-1, 3, -1, -1) if x.shape[1] == 1 else x
-    maps = {"image": schema.to_model("image", image_a), "albedo": schema.to_model("albedo", intr["albedo"]),
-            "normal": schema.to_model("normal", intr["normal"]), "ball": schema.to_model("ball", up),
-            "metallic": rep(schema.to_model("metallic", intr["metallic"])),
-            "roughness": rep(schema.to_model("roughness", intr["roughness"])),
-            "mask": rep(schema.to_model("mask", mask))}
+    maps = {
+        "image": schema.to_model("image", image_a),
+        "albedo": schema.to_model("albedo", intr["albedo"]),
+        "normal": schema.to_model("normal", intr["normal"]),
+        "ball": schema.to_model("ball", up),
+        "metallic": rep(schema.to_model("metallic", intr["metallic"])),
+        "roughness": rep(schema.to_model("roughness", intr["roughness"])),
+        "mask": rep(schema.to_model("mask", mask)),
+    }
     if with_d_calc:
         maps["d_calc"] = schema.to_model("image", diffuse_calculated(ball, intr["normal"], mask, intr["metallic"]))
     return maps
 
 
-def encode_conditions(codec, maps: dict[str, torch.Tensor], layout: dict[str, tuple[str, ...]],
-                      width: int) -> torch.Tensor:
+def encode_conditions(
+    codec, maps: dict[str, torch.Tensor], layout: dict[str, tuple[str, ...]], width: int
+) -> torch.Tensor:
     """(B * V, width * latent_channels, h, w): per branch its maps' latents, concatenated, zero-padded."""
     names = sorted({n for ms in layout.values() for n in ms})
     B = maps[names[0]].shape[0]
@@ -98,13 +112,16 @@ def branch_targets(batch: dict, branches: tuple[str, ...]) -> torch.Tensor:
 # physics_first (pilight.relight.physics_first): every branch reads the anchors it corrects, and
 # the target light only through maps divided by its level (ball_n, d_calc_n, s_calc_n), so the
 # gains it outputs do not depend on the light's strength and I_relit is linear in it.
-PHYSICS_FIRST_MAPS = {"relit": ("image", "mask", "albedo_x", "d_calc_n"),
-                      "diffuse": ("normal", "ball_n", "mask", "d_calc_n", "image", "albedo_x"),
-                      "specular": ("normal", "ball_n", "metallic", "roughness", "mask", "s_calc_n")}
+PHYSICS_FIRST_MAPS = {
+    "relit": ("image", "mask", "albedo_x", "d_calc_n"),
+    "diffuse": ("normal", "ball_n", "mask", "d_calc_n", "image", "albedo_x"),
+    "specular": ("normal", "ball_n", "metallic", "roughness", "mask", "s_calc_n"),
+}
 
 
-def physics_first_images(image_a: torch.Tensor, intr: dict[str, torch.Tensor], ball: torch.Tensor,
-                         mask: torch.Tensor, anc) -> dict[str, torch.Tensor]:
+def physics_first_images(
+    image_a: torch.Tensor, intr: dict[str, torch.Tensor], ball: torch.Tensor, mask: torch.Tensor, anc
+) -> dict[str, torch.Tensor]:
     """condition_images plus the physics-first maps of ``anc`` (a physics_first.Anchors)."""
     maps = condition_images(image_a, intr, ball, mask)
     h, w = image_a.shape[-2:]

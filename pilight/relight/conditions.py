@@ -26,26 +26,35 @@ def _sample_keys(batch: dict) -> list[str]:
     return [schema.sample_key(m["scene"], m["view"], m["light"]) for m in metas]
 
 
-def load_condition_predictions(shard_dir: Path, pred_dir: Path | None, split: str,
-                               why: str) -> dict[str, dict[str, np.ndarray]]:
+def load_condition_predictions(
+    shard_dir: Path, pred_dir: Path | None, split: str, why: str
+) -> dict[str, dict[str, np.ndarray]]:
     """Stage-1 predictions for every input image of `split`'s pairs; DataError naming what is missing."""
     if pred_dir is None or not (Path(pred_dir) / "index.json").is_file():
-        raise DataError(f"{why} needs stage-1 predictions of the {split!r} split, but {pred_dir}/index.json "
-                        "was not found: run infer_intrinsics (with infer_intrinsics.splits including "
-                        f"{split!r}) first, or set relight.conditions: gt")
+        raise DataError(
+            f"{why} needs stage-1 predictions of the {split!r} split, but {pred_dir}/index.json "
+            "was not found: run infer_intrinsics (with infer_intrinsics.splits including "
+            f"{split!r}) first, or set relight.conditions: gt"
+        )
     try:
         preds = read_predictions(Path(pred_dir), split)
     except DataError as exc:
         raise DataError(f"{why}: {exc}") from None
-    needed = sorted({schema.sample_key(p.scene, p.view, p.a) for p in read_pairs(Path(shard_dir) / "pairs" / f"{split}.tsv")})
+    needed = sorted(
+        {schema.sample_key(p.scene, p.view, p.a) for p in read_pairs(Path(shard_dir) / "pairs" / f"{split}.tsv")}
+    )
     missing = [k for k in needed if k not in preds]
     if missing:
-        raise DataError(f"{why}: {pred_dir} has no {split!r} predictions for {len(missing)} input image(s), e.g. "
-                        f"{missing[:3]}; rerun infer_intrinsics on the current shards")
+        raise DataError(
+            f"{why}: {pred_dir} has no {split!r} predictions for {len(missing)} input image(s), e.g. "
+            f"{missing[:3]}; rerun infer_intrinsics on the current shards"
+        )
     short = sorted({d for k in needed for d in PRED_DOMAINS if d not in preds[k]})
     if short:
-        raise DataError(f"{why}: {pred_dir} lacks predicted {short} (infer_intrinsics.domains must "
-                        f"include all of {list(PRED_DOMAINS)})")
+        raise DataError(
+            f"{why}: {pred_dir} lacks predicted {short} (infer_intrinsics.domains must "
+            f"include all of {list(PRED_DOMAINS)})"
+        )
     return preds
 
 

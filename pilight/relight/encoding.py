@@ -17,10 +17,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from pilight.data import schema
+from pilight.data.colour import hdr_to_model, model_to_hdr
 
 PHYS_HDR_MAX = 64.0
-Y_PHYS = float(schema.hdr_to_model(np.float64(PHYS_HDR_MAX)))
+Y_PHYS = float(hdr_to_model(np.float64(PHYS_HDR_MAX)))
 TONEMAP_EPS = 1e-6
 GAIN_EPS = 0.05  # display-value floor of relit_target gain (u in [0, 1]; mid-gray 0.18 linear is u ~ 0.42)
 GAIN_SCALE = 2.0  # G = log ratio / GAIN_SCALE: |G| <= log(1.05 / 0.05) / 2 = 1.52, the range of the other targets
@@ -41,11 +41,10 @@ def gain_decode(g: torch.Tensor, y_a: torch.Tensor) -> torch.Tensor:
 
 
 def tonemap(x: torch.Tensor) -> torch.Tensor:
-    """Linear HDR -> [-1, 1) like schema.hdr_to_model, with a finite slope at 0 (for gradients)."""
-    u = x.clamp_min(0.0) * schema.EXPOSURE + TONEMAP_EPS
-    return 2.0 * (u / (1.0 + u)) ** (1.0 / schema.GAMMA) - 1.0
+    """Linear HDR -> [-1, 1): the schema's hdr_to_model plus TONEMAP_EPS, a finite slope at 0 (for gradients)."""
+    return hdr_to_model(x, eps=TONEMAP_EPS)
 
 
 def to_linear(y: torch.Tensor) -> torch.Tensor:
     """Decoded model-space output -> linear HDR, clamped to [0, PHYS_HDR_MAX] (gradients stay finite)."""
-    return schema.model_to_hdr(y.clamp(-1.0, Y_PHYS))
+    return model_to_hdr(y.clamp(-1.0, Y_PHYS))

@@ -64,9 +64,9 @@ from pilight.physics.source_light import estimate_source_balls
 from pilight.physics.specular_model import specular_from_ball
 
 EPS_LEVEL = 0.05  # eps_b / level(ball_b): 5% of the light's mean shading
-GAIN = 2.0        # g = log ratio / GAIN, so |g| stays near the range of the other targets
-G_MAX = 3.0       # |g| clamp when decoding: a factor of e^6 either way
-A_MIN = 0.02      # albedo floor of the D_eff division (a black pixel needs no shading)
+GAIN = 2.0  # g = log ratio / GAIN, so |g| stays near the range of the other targets
+G_MAX = 3.0  # |g| clamp when decoding: a factor of e^6 either way
+A_MIN = 0.02  # albedo floor of the D_eff division (a black pixel needs no shading)
 
 
 def light_level(ball: torch.Tensor) -> torch.Tensor:
@@ -80,11 +80,12 @@ def light_level(ball: torch.Tensor) -> torch.Tensor:
 @dataclass
 class Anchors:
     """What physics says, per pixel (linear HDR, B x 3 x H x W), and the units of the gains."""
-    d_calc: torch.Tensor   # D_calc_b
-    s_calc: torch.Tensor   # S_calc_b
-    albedo: torch.Tensor   # A_x
-    eps: torch.Tensor      # eps_b, (B, 1, 1, 1)
-    level: torch.Tensor    # level(ball_b), (B, 1, 1, 1)
+
+    d_calc: torch.Tensor  # D_calc_b
+    s_calc: torch.Tensor  # S_calc_b
+    albedo: torch.Tensor  # A_x
+    eps: torch.Tensor  # eps_b, (B, 1, 1, 1)
+    level: torch.Tensor  # level(ball_b), (B, 1, 1, 1)
 
 
 def _specular(ball, lambertian, intr, mask, kind: str):
@@ -102,10 +103,19 @@ def _specular(ball, lambertian, intr, mask, kind: str):
     return specular_calculated(ball, lambertian, n, mask, a_c, m)
 
 
-def anchors(image_a: torch.Tensor, intr: dict[str, torch.Tensor], mask: torch.Tensor, ball_b: torch.Tensor,
-            lambertian_b: torch.Tensor | None, *, albedo_source: str = "effective",
-            ball_a: torch.Tensor | None = None, lambertian_a: torch.Tensor | None = None,
-            smooth_cell: int = 1, specular: str = "lookup") -> Anchors:
+def anchors(
+    image_a: torch.Tensor,
+    intr: dict[str, torch.Tensor],
+    mask: torch.Tensor,
+    ball_b: torch.Tensor,
+    lambertian_b: torch.Tensor | None,
+    *,
+    albedo_source: str = "effective",
+    ball_a: torch.Tensor | None = None,
+    lambertian_a: torch.Tensor | None = None,
+    smooth_cell: int = 1,
+    specular: str = "lookup",
+) -> Anchors:
     """The physics anchors of the target light b and the albedo A_x (module docstring)."""
     n, m, a_c = intr["normal"].float(), intr["metallic"].float(), intr["albedo"].float()
     level = light_level(ball_b)
@@ -117,8 +127,9 @@ def anchors(image_a: torch.Tensor, intr: dict[str, torch.Tensor], mask: torch.Te
     elif albedo_source == "effective":
         found = torch.ones(image_a.shape[0], dtype=torch.bool, device=image_a.device)
         if ball_a is None:  # the input's light, estimated from it (pilight.physics.source_light)
-            ball_a, found = estimate_source_balls(image_a.float().cpu(), a_c.cpu(), n.cpu(), mask.float().cpu(),
-                                                  ball_b.shape[-1], m.cpu())
+            ball_a, found = estimate_source_balls(
+                image_a.float().cpu(), a_c.cpu(), n.cpu(), mask.float().cpu(), ball_b.shape[-1], m.cpu()
+            )
             ball_a, found, lambertian_a = ball_a.to(image_a.device), found.to(image_a.device), None
         eps_a = EPS_LEVEL * light_level(ball_a)
         d_a = sm(diffuse_calculated(ball_a, n, mask, m))

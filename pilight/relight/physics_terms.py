@@ -29,9 +29,17 @@ from pilight.relight.encoding import to_linear, tonemap
 PHYSICS_SPACE = "tonemapped"
 
 
-def physics_terms(y: torch.Tensor, *, albedo: torch.Tensor, d_calc: torch.Tensor | None, mask: torch.Tensor,
-                  image_a: torch.Tensor, extractor, space: str = PHYSICS_SPACE,
-                  ps_on_mask: bool = False) -> dict[str, torch.Tensor]:
+def physics_terms(
+    y: torch.Tensor,
+    *,
+    albedo: torch.Tensor,
+    d_calc: torch.Tensor | None,
+    mask: torch.Tensor,
+    image_a: torch.Tensor,
+    extractor,
+    space: str = PHYSICS_SPACE,
+    ps_on_mask: bool = False,
+) -> dict[str, torch.Tensor]:
     """Per-sample (B,) L_DS, L_PS, L_rec from decoded outputs y (B, V, 3, H, W) in model space.
 
     V = 3 (relit, diffuse, specular) or V = 1 (relit only: L_DS = L_PS = 0). `space`: "tonemapped"

@@ -30,8 +30,8 @@ import shutil
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 # No bpy at import time: workers unpickle this module's functions before render_partition has cleaned
 # their sys.path (_blender_paths_out).
@@ -47,7 +47,7 @@ def _blender_paths_out() -> None:
 
 
 def partitions(specs: list[dict], size: int) -> list[list[dict]]:
-    return [specs[i:i + size] for i in range(0, len(specs), size)]
+    return [specs[i : i + size] for i in range(0, len(specs), size)]
 
 
 def _marker(root: Path, part: list[dict]) -> Path:
@@ -70,9 +70,9 @@ def render_partition(part: list[dict], params_json: dict, root: str, hdri_dir: s
     """One task, run inside a worker process: render the partition's scenes, then write its marker."""
     _blender_paths_out()
     from pilight.params import RenderParams
-    from pilight.render.scene import RenderError
     from pilight.render import dataset  # imports bpy, once per worker process
     from pilight.render.blender_log import blender_output_to
+    from pilight.render.scene import RenderError
 
     p = RenderParams.model_validate(params_json, context={"check_paths": False})
     root_path, t0 = Path(root), time.perf_counter()
@@ -98,8 +98,9 @@ def render_partition(part: list[dict], params_json: dict, root: str, hdri_dir: s
     return {"bundles": bundles, "seconds": time.perf_counter() - t0, "pid": os.getpid()}
 
 
-def render_on_dask(specs: list[dict], p, root: Path, hdri_dir: Path, on_bundles: Callable[[int], object],
-                   blender_log: Path | None) -> list[dict]:
+def render_on_dask(
+    specs: list[dict], p, root: Path, hdri_dir: Path, on_bundles: Callable[[int], object], blender_log: Path | None
+) -> list[dict]:
     """Submit every incomplete partition, wait for all of them; RenderError naming the failed scenes."""
     from pilight.render import dataset
     from pilight.render.scene import RenderError
@@ -107,8 +108,9 @@ def render_on_dask(specs: list[dict], p, root: Path, hdri_dir: Path, on_bundles:
     try:
         from dask.distributed import Client, LocalCluster, as_completed
     except ImportError:
-        raise RenderError("render.cluster.executor is 'dask' but dask.distributed is not installed: "
-                          "pip install -e '.[cluster]'") from None
+        raise RenderError(
+            "render.cluster.executor is 'dask' but dask.distributed is not installed: pip install -e '.[cluster]'"
+        ) from None
     c = p.cluster
     parts = partitions(specs, c.scenes_per_task)
     todo = []
@@ -121,14 +123,28 @@ def render_on_dask(specs: list[dict], p, root: Path, hdri_dir: Path, on_bundles:
         return []
     params_json = p.model_dump(mode="json")
     log = str(Path(blender_log).resolve()) if blender_log else None
-    cluster = None if c.address else LocalCluster(n_workers=c.workers, threads_per_worker=1, processes=True,
-                                                  dashboard_address=None)
+    cluster = (
+        None
+        if c.address
+        else LocalCluster(n_workers=c.workers, threads_per_worker=1, processes=True, dashboard_address=None)
+    )
     client = Client(c.address or cluster)
     results, failed = [], []
     try:
-        futures = {client.submit(render_partition, part, params_json, str(Path(root).resolve()), str(hdri_dir), log,
-                                 key=f"render-{part[0]['id']}--{part[-1]['id']}", pure=False, retries=c.retries): part
-                   for part in todo}
+        futures = {
+            client.submit(
+                render_partition,
+                part,
+                params_json,
+                str(Path(root).resolve()),
+                str(hdri_dir),
+                log,
+                key=f"render-{part[0]['id']}--{part[-1]['id']}",
+                pure=False,
+                retries=c.retries,
+            ): part
+            for part in todo
+        }
         for future in as_completed(futures):
             part = futures[future]
             try:
@@ -142,6 +158,8 @@ def render_on_dask(specs: list[dict], p, root: Path, hdri_dir: Path, on_bundles:
         if cluster is not None:
             cluster.close()
     if failed:
-        raise RenderError(f"{len(failed)} of {len(todo)} render partition(s) failed (the others are complete and "
-                          "kept; fix the cause and rerun):\n  " + "\n  ".join(failed))
+        raise RenderError(
+            f"{len(failed)} of {len(todo)} render partition(s) failed (the others are complete and "
+            "kept; fix the cause and rerun):\n  " + "\n  ".join(failed)
+        )
     return results

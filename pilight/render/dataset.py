@@ -26,7 +26,9 @@ from tqdm import tqdm
 
 from pilight import atomic
 from pilight.data import layout
+from pilight.data.colour import linear_to_srgb
 from pilight.data.exr import read_render_passes, write_exr
+from pilight.eval.grids import labelled_grid
 from pilight.params import BaseParams, RenderParams
 from pilight.render import passes as P
 from pilight.render import scene as S
@@ -43,9 +45,8 @@ def write_json(path: Path, obj) -> None:
 
 
 def _srgb8_exact(x: np.ndarray) -> np.ndarray:
-    x = np.clip(x, 0.0, 1.0)
-    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-    return (srgb * 255.0 + 0.5).astype(np.uint8)
+    # +0.5 and truncation, not srgb_preview's round-half-even: the bytes of every preview.png so far.
+    return (linear_to_srgb(np.clip(x, 0.0, 1.0)) * 255.0 + 0.5).astype(np.uint8)
 
 
 # A 16-bit lookup table: 4x faster than the power law per preview, within one code value of it.
@@ -57,15 +58,15 @@ def _srgb8(x: np.ndarray) -> np.ndarray:
 
 
 def write_preview(path: Path, tiles: list[np.ndarray]) -> None:
-    """sRGB PNG strip for people (the only place sRGB is used in the render stage)."""
-    h = max(t.shape[0] for t in tiles)
-    rgb = [np.repeat(t, 3, axis=-1) if t.shape[-1] == 1 else t for t in tiles]
-    rgb = [np.pad(t, ((0, h - t.shape[0]), (0, 0), (0, 0))) for t in rgb]  # the ball has its own size
+    """sRGB PNG strip for people (the only place sRGB is used in the render stage): the tiles side by
+    side, no gaps; the ball, smaller, at the top of its column with black below."""
+    strip = labelled_grid([[_srgb8(t) for t in tiles]], None, gap=0, tight=True)
     # compress_level 1: a quarter of the default's encode time for files about 7% larger.
-    atomic.write_png(path, _srgb8(np.concatenate(rgb, axis=1)), compress_level=1)
+    atomic.write_png(path, strip, compress_level=1)
 
 
-def _render(scene, tmp_dir: Path) -> dict[str, np.ndarray]:
+def render_passes(scene, tmp_dir: Path) -> dict[str, np.ndarray]:
+    """Render ``scene`` as it is set up now; its passes as {name: H x W x C float32} (a temporary EXR in tmp_dir)."""
     out = tmp_dir / f"{scene.name}.exr"
     scene.render.filepath = str(out)
     bpy.ops.render.render(write_still=True, scene=scene.name)
@@ -77,8 +78,12 @@ def _render(scene, tmp_dir: Path) -> dict[str, np.ndarray]:
 def view_stamp(spec: dict, view: int, p: RenderParams) -> str:
     """sha256 of what one view's files are made from (module docstring); the `.done` marker's content."""
     # scenes: the counts decide which scenes exist, not how one looks; cluster: where it is rendered
-    made_from = {"spec": spec, "view": view, "render": p.model_dump(mode="json", exclude={"scenes", "cluster"}),
-                 "blender": bpy.app.version_string}
+    made_from = {
+        "spec": spec,
+        "view": view,
+        "render": p.model_dump(mode="json", exclude={"scenes", "cluster"}),
+        "blender": bpy.app.version_string,
+    }
     return hashlib.sha256(json.dumps(made_from, sort_keys=True).encode()).hexdigest()
 
 
@@ -102,8 +107,18 @@ def remove_unasked(root: Path, specs: list[dict]) -> None:
                 shutil.rmtree(v)
 
 
-def render_view(handles: dict, spec: dict, view: int, root: Path, tmp_dir: Path, *, lambertian: bool,
-                verify: bool = False, on_bundle=None, stamp: str = "") -> dict:
+def render_view(
+    handles: dict,
+    spec: dict,
+    view: int,
+    root: Path,
+    tmp_dir: Path,
+    *,
+    lambertian: bool,
+    verify: bool = False,
+    on_bundle=None,
+    stamp: str = "",
+) -> dict:
     """Render every light of one view into an emptied view folder; return the raw passes when `verify`."""
     scene, ball_scene = handles["scene"], handles["ball_scene"]
     shutil.rmtree(layout.view_dir(root, spec["id"], view), ignore_errors=True)  # nothing of an older view survives
@@ -115,7 +130,7 @@ def render_view(handles: dict, spec: dict, view: int, root: Path, tmp_dir: Path,
         S.set_lights(light)
         S.set_world(handles["world"], light)
         P.configure(scene.view_layers[0], diffuse=True, view_maps=li == 0, verify=verify)
-        passes = _render(scene, tmp_dir)
+        passes = render_passes(scene, tmp_dir)
         if li == 0:
             maps = P.view_maps(passes, rot)
             for name, arr in maps.items():
@@ -132,7 +147,7 @@ def render_view(handles: dict, spec: dict, view: int, root: Path, tmp_dir: Path,
     for li, light in enumerate(spec["lights"][view]):
         S.set_lights(light)
         S.set_world(handles["world"], light)
-        balls = P.ball_maps(_render(ball_scene, tmp_dir), lambertian=lambertian)
+        balls = P.ball_maps(render_passes(ball_scene, tmp_dir), lambertian=lambertian)
         for name, arr in balls.items():
             write_exr(layout.map_path(root, sid, view, name, li), arr, half=True)
         tiles = [lit[li]["image"], maps["albedo"], lit[li]["diffuse"], lit[li]["specular"], balls["ball"]]
@@ -147,9 +162,15 @@ def scene_sidecar(spec: dict, handles: dict, p: RenderParams) -> dict:
         S.set_view(handles, view)
         cams.append({"view": v, **S.camera_json(handles["camera"], handles["scene"])})
     return {
-        "id": spec["id"], "split": spec["split"], "kind": spec["kind"], "seed": spec["seed"],
-        "blender_version": bpy.app.version_string, "resolution": p.resolution,
-        "spec": spec, "materials": handles["materials"], "cameras": cams,
+        "id": spec["id"],
+        "split": spec["split"],
+        "kind": spec["kind"],
+        "seed": spec["seed"],
+        "blender_version": bpy.app.version_string,
+        "resolution": p.resolution,
+        "spec": spec,
+        "materials": handles["materials"],
+        "cameras": cams,
         "lights": [[{"light": li, **l} for li, l in enumerate(view_lights)] for view_lights in spec["lights"]],
     }
 
@@ -159,8 +180,9 @@ def all_specs(p: RenderParams, base: BaseParams) -> list[dict]:
     return [scene_spec(p, base.seed, split, i) for split in SPLITS for i in range(counts[split])]
 
 
-def render_dataset(p: RenderParams, base: BaseParams, root: Path, *, progress: bool = True,
-                   blender_log: Path | None = None) -> dict:
+def render_dataset(
+    p: RenderParams, base: BaseParams, root: Path, *, progress: bool = True, blender_log: Path | None = None
+) -> dict:
     """Render all scenes into `root`; returns timing figures. Blender's own lines go to `blender_log`
     (appended; None = the terminal), the progress bar stays on the terminal."""
     root = Path(root)
@@ -187,8 +209,16 @@ def render_scene(spec: dict, p: RenderParams, root: Path, hdri_dir: Path, tmp_di
     rendered = 0
     for v in range(len(spec["views"])):
         if v in pending:
-            render_view(handles, spec, v, root, tmp_dir, lambertian=p.lambertian_ball, on_bundle=lambda: tick(1),
-                        stamp=view_stamp(spec, v, p))
+            render_view(
+                handles,
+                spec,
+                v,
+                root,
+                tmp_dir,
+                lambertian=p.lambertian_ball,
+                on_bundle=lambda: tick(1),
+                stamp=view_stamp(spec, v, p),
+            )
             rendered += len(spec["lights"][v])
         else:
             tick(len(spec["lights"][v]))
@@ -197,18 +227,23 @@ def render_scene(spec: dict, p: RenderParams, root: Path, hdri_dir: Path, tmp_di
 
 
 def manifest_entry(spec: dict) -> dict:
-    return {"id": spec["id"], "kind": spec["kind"], "split": spec["split"], "views": len(spec["views"]),
-            "lights": len(spec["lights"][0]),
-            "hdris": sorted({l["hdri"]["name"] for v in spec["lights"] for l in v if l["hdri"]})}
+    return {
+        "id": spec["id"],
+        "kind": spec["kind"],
+        "split": spec["split"],
+        "views": len(spec["views"]),
+        "lights": len(spec["lights"][0]),
+        "hdris": sorted({l["hdri"]["name"] for v in spec["lights"] for l in v if l["hdri"]}),
+    }
 
 
-def _render_all(p: RenderParams, base: BaseParams, root: Path, *, progress: bool, terminal,
-                blender_log: Path | None = None) -> dict:
+def _render_all(
+    p: RenderParams, base: BaseParams, root: Path, *, progress: bool, terminal, blender_log: Path | None = None
+) -> dict:
     hdri_dir = Path(p.hdri.dir) if p.hdri.dir else bundled_hdri_dir()
     specs = all_specs(p, base)
     total = bundles_of(specs)
-    bar = tqdm(total=total, desc="render (view, light) bundles", unit="bundle", disable=not progress,
-               file=terminal)
+    bar = tqdm(total=total, desc="render (view, light) bundles", unit="bundle", disable=not progress, file=terminal)
     t0 = time.perf_counter()
     (root / "manifest.json").unlink(missing_ok=True)  # written last: its presence means the folder is complete
     remove_unasked(root, specs)
@@ -226,7 +261,13 @@ def _render_all(p: RenderParams, base: BaseParams, root: Path, *, progress: bool
                 shutil.rmtree(tmp_dir, ignore_errors=True)
     finally:
         bar.close()
-    write_json(root / "manifest.json", {"blender_version": bpy.app.version_string, "resolution": p.resolution,
-                                        "scenes": [manifest_entry(s) for s in specs]})
+    write_json(
+        root / "manifest.json",
+        {
+            "blender_version": bpy.app.version_string,
+            "resolution": p.resolution,
+            "scenes": [manifest_entry(s) for s in specs],
+        },
+    )
     seconds = time.perf_counter() - t0
     return {"bundles": total, "seconds": seconds}

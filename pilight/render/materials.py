@@ -14,8 +14,12 @@ import bpy
 
 AOVS = (("albedo", "COLOR"), ("roughness", "VALUE"), ("metallic", "VALUE"), ("principled", "VALUE"))
 _TEXTURE_NODES = {
-    "noise": "ShaderNodeTexNoise", "voronoi": "ShaderNodeTexVoronoi", "checker": "ShaderNodeTexChecker",
-    "wave": "ShaderNodeTexWave", "brick": "ShaderNodeTexBrick", "magic": "ShaderNodeTexMagic",
+    "noise": "ShaderNodeTexNoise",
+    "voronoi": "ShaderNodeTexVoronoi",
+    "checker": "ShaderNodeTexChecker",
+    "wave": "ShaderNodeTexWave",
+    "brick": "ShaderNodeTexBrick",
+    "magic": "ShaderNodeTexMagic",
 }
 
 
@@ -75,8 +79,11 @@ def _driven(nt, spec: dict, colour: bool, mask=None):
 
 def wire_principled_aovs(nt, bsdf) -> None:
     """Send whatever feeds the BSDF's inputs to the AOVs too (also used for imported assets)."""
-    for aov, socket_name, out_socket in (("albedo", "Base Color", "Color"), ("roughness", "Roughness", "Value"),
-                                         ("metallic", "Metallic", "Value")):
+    for aov, socket_name, out_socket in (
+        ("albedo", "Base Color", "Color"),
+        ("roughness", "Roughness", "Value"),
+        ("metallic", "Metallic", "Value"),
+    ):
         node, src = _aov_node(nt, aov), bsdf.inputs[socket_name]
         if src.is_linked:
             nt.links.new(src.links[0].from_socket, node.inputs[out_socket])
@@ -94,8 +101,11 @@ def make_material(name: str, spec: dict):
     if kind == "principled":
         bsdf = nt.nodes.new("ShaderNodeBsdfPrincipled")
         mask = _pattern_mask(nt, spec["pattern"]) if "pattern" in spec else None
-        for socket_name, key, colour in (("Base Color", "base_color", True), ("Roughness", "roughness", False),
-                                         ("Metallic", "metallic", False)):
+        for socket_name, key, colour in (
+            ("Base Color", "base_color", True),
+            ("Roughness", "roughness", False),
+            ("Metallic", "metallic", False),
+        ):
             socket, const = _driven(nt, spec[key], colour, mask)
             if socket is not None:
                 nt.links.new(socket, bsdf.inputs[socket_name])

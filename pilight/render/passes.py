@@ -27,8 +27,16 @@ import numpy as np
 BEAUTY_PASSES = ("combined",)
 DIFFUSE_PASSES = ("diffuse_direct", "diffuse_indirect", "diffuse_color")
 VIEW_PASSES = ("normal",)  # plus the shader AOVs, always present on the view layer
-VERIFY_PASSES = ("glossy_direct", "glossy_indirect", "glossy_color", "transmission_direct",
-                 "transmission_indirect", "transmission_color", "emit", "environment")
+VERIFY_PASSES = (
+    "glossy_direct",
+    "glossy_indirect",
+    "glossy_color",
+    "transmission_direct",
+    "transmission_indirect",
+    "transmission_color",
+    "emit",
+    "environment",
+)
 _ALL = BEAUTY_PASSES + DIFFUSE_PASSES + VIEW_PASSES + VERIFY_PASSES
 MASK_THRESHOLD = 1.0 - 1e-4  # "principled" AOV averaged over the pixel: 1 only if fully covered
 S_NEGATIVE_TOLERANCE = 1e-4  # relative; larger negative S means the contract is broken

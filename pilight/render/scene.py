@@ -105,7 +105,7 @@ def _modifier(obj, kind: str) -> None:
         raise ValueError(f"unknown modifier {kind!r}")
 
 
-POSITION_GRID = 2.0 ** 16  # baked vertex positions are multiples of 1 / POSITION_GRID metres
+POSITION_GRID = 2.0**16  # baked vertex positions are multiples of 1 / POSITION_GRID metres
 
 
 def _vertex_normals(me) -> tuple[np.ndarray, np.ndarray]:
@@ -253,7 +253,11 @@ def _fit_asset(root, meshes, size: float, location, rotation_deg) -> None:
     centre = (lo + hi) / 2
     root.scale = (scale, scale, scale)
     root.rotation_euler = Euler([math.radians(a) for a in rotation_deg])
-    root.location = Vector(location) - scale * (root.rotation_euler.to_matrix() @ centre) + Vector((0, 0, scale * (centre.z - lo.z)))
+    root.location = (
+        Vector(location)
+        - scale * (root.rotation_euler.to_matrix() @ centre)
+        + Vector((0, 0, scale * (centre.z - lo.z)))
+    )
 
 
 def _world(hdri_dir: Path, map_resolution: int, camera_backdrop: float | None = None):
@@ -265,7 +269,11 @@ def _world(hdri_dir: Path, map_resolution: int, camera_backdrop: float | None = 
     nt = world.node_tree
     nt.nodes.clear()
     coord, mapping = nt.nodes.new("ShaderNodeTexCoord"), nt.nodes.new("ShaderNodeMapping")
-    env, bg_env, bg_amb = nt.nodes.new("ShaderNodeTexEnvironment"), nt.nodes.new("ShaderNodeBackground"), nt.nodes.new("ShaderNodeBackground")
+    env, bg_env, bg_amb = (
+        nt.nodes.new("ShaderNodeTexEnvironment"),
+        nt.nodes.new("ShaderNodeBackground"),
+        nt.nodes.new("ShaderNodeBackground"),
+    )
     add, out = nt.nodes.new("ShaderNodeAddShader"), nt.nodes.new("ShaderNodeOutputWorld")
     nt.links.new(coord.outputs["Generated"], mapping.inputs["Vector"])
     nt.links.new(mapping.outputs["Vector"], env.inputs["Vector"])
@@ -353,8 +361,12 @@ def camera_json(cam, scene) -> dict:
     res = scene.render.resolution_x
     f_px = cam.data.lens / cam.data.sensor_width * res
     K = [[f_px, 0.0, res / 2], [0.0, f_px, res / 2], [0.0, 0.0, 1.0]]
-    return {"K": K, "world_from_camera": [list(row) for row in cam.matrix_world], "lens_mm": cam.data.lens,
-            "sensor_width_mm": cam.data.sensor_width}
+    return {
+        "K": K,
+        "world_from_camera": [list(row) for row in cam.matrix_world],
+        "lens_mm": cam.data.lens,
+        "sensor_width_mm": cam.data.sensor_width,
+    }
 
 
 def build(spec: dict, p: RenderParams, hdri_dir: Path) -> dict:
@@ -408,6 +420,7 @@ def build(spec: dict, p: RenderParams, hdri_dir: Path) -> dict:
     ball = bpy.data.objects.new("ball", ball_mesh)
     ball_scene.collection.objects.link(ball)
     import bmesh
+
     bm = bmesh.new()
     bmesh.ops.create_uvsphere(bm, u_segments=96, v_segments=48, radius=BALL_RADIUS)
     bm.to_mesh(ball_mesh)
@@ -421,8 +434,15 @@ def build(spec: dict, p: RenderParams, hdri_dir: Path) -> dict:
     ball_cam.data.clip_start, ball_cam.data.clip_end = BALL_RADIUS, 40 * BALL_RADIUS
     ball_scene.collection.objects.link(ball_cam)
     ball_scene.camera = ball_cam
-    return {"scene": scene, "ball_scene": ball_scene, "camera": cam, "ball_camera": ball_cam, "world": world,
-            "target": spec["target"], "materials": materials}
+    return {
+        "scene": scene,
+        "ball_scene": ball_scene,
+        "camera": cam,
+        "ball_camera": ball_cam,
+        "world": world,
+        "target": spec["target"],
+        "materials": materials,
+    }
 
 
 def camera_rotation(handles: dict) -> Matrix:

@@ -49,15 +49,23 @@ def _channel(rng, p: RenderParams, const: float | list[float], lo: float, hi: fl
     """One Principled input: a constant or a procedural texture between two values."""
     if p.scene.textures and rng.uniform() < p.scene.textured_probability:
         a, b = (_colour(rng), _colour(rng)) if colour else sorted(rng.uniform(lo, hi, 2).round(4).tolist())
-        return {"texture": str(rng.choice(p.scene.textures)), "scale": round(float(rng.uniform(2.0, 8.0)), 3),
-                "values": [a, b]}
+        return {
+            "texture": str(rng.choice(p.scene.textures)),
+            "scale": round(float(rng.uniform(2.0, 8.0)), 3),
+            "values": [a, b],
+        }
     return {"const": const}
 
 
 def _material(rng: np.random.Generator, p: RenderParams) -> dict:
     if rng.uniform() < p.scene.non_principled_probability:
         if rng.uniform() < 0.5:
-            return {"type": "glass", "color": _colour(rng), "roughness": round(float(rng.uniform(0, 0.2)), 4), "ior": 1.45}
+            return {
+                "type": "glass",
+                "color": _colour(rng),
+                "roughness": round(float(rng.uniform(0, 0.2)), 4),
+                "ior": 1.45,
+            }
         return {"type": "emission", "color": _colour(rng), "strength": round(float(rng.uniform(1.0, 4.0)), 3)}
     if p.scene.material_pattern == "shared":
         return _shared_pattern_material(rng, p)
@@ -83,18 +91,30 @@ def _shared_pattern_material(rng: np.random.Generator, p: RenderParams) -> dict:
     roughness and metalness together, so where the albedo changes, the others may too, and
     metalness is 0 or 1 away from edges. Independent textures per map make roughness and
     metallic patterns that no image shows; "independent" keeps that older distribution."""
+
     def sub() -> tuple[list[float], float, float]:
-        return (_colour(rng), round(float(rng.uniform(0.1, 0.9)), 4),
-                1.0 if rng.uniform() < p.scene.metallic_probability else 0.0)
+        return (
+            _colour(rng),
+            round(float(rng.uniform(0.1, 0.9)), 4),
+            1.0 if rng.uniform() < p.scene.metallic_probability else 0.0,
+        )
 
     first = sub()
     if not (p.scene.textures and rng.uniform() < p.scene.textured_probability):
-        return {"type": "principled", **{k: {"const": v} for k, v in zip(("base_color", "roughness", "metallic"), first)}}
+        return {
+            "type": "principled",
+            **{k: {"const": v} for k, v in zip(("base_color", "roughness", "metallic"), first)},
+        }
     second = sub()
-    pattern = {"texture": str(rng.choice(p.scene.textures)), "scale": round(float(rng.uniform(2.0, 8.0)), 3),
-               "edge": PATTERN_EDGE}
-    channels = {k: {"const": a} if a == b else {"values": [a, b]}
-                for k, a, b in zip(("base_color", "roughness", "metallic"), first, second)}
+    pattern = {
+        "texture": str(rng.choice(p.scene.textures)),
+        "scale": round(float(rng.uniform(2.0, 8.0)), 3),
+        "edge": PATTERN_EDGE,
+    }
+    channels = {
+        k: {"const": a} if a == b else {"values": [a, b]}
+        for k, a, b in zip(("base_color", "roughness", "metallic"), first, second)
+    }
     return {"type": "principled", "pattern": pattern, **channels}
 
 
@@ -102,7 +122,11 @@ def _object(rng, p: RenderParams, location, size: float) -> dict:
     shape = str(rng.choice(p.scene.shapes))
     modifiers = []
     if rng.uniform() < p.scene.modifier_probability:
-        modifiers.append({"cube": "bevel", "cylinder": "bevel", "cone": "bevel"}.get(shape, "displace" if rng.uniform() < 0.5 else "subdivision"))
+        modifiers.append(
+            {"cube": "bevel", "cylinder": "bevel", "cone": "bevel"}.get(
+                shape, "displace" if rng.uniform() < 0.5 else "subdivision"
+            )
+        )
     return {
         "shape": shape,
         "location": np.round(location, 4).tolist(),
@@ -124,7 +148,9 @@ def _object_views(rng, p: RenderParams, radius: float) -> list[dict]:
             azimuth, polar = math.radians(-90 + 90 * (0, 2, 3, 1)[v]), math.radians(70.0)
         else:
             azimuth, polar = rng.uniform(0, 2 * math.pi), math.radians(rng.uniform(45.0, 85.0))
-        eye = dist * np.array([math.sin(polar) * math.cos(azimuth), math.sin(polar) * math.sin(azimuth), math.cos(polar)])
+        eye = dist * np.array(
+            [math.sin(polar) * math.cos(azimuth), math.sin(polar) * math.sin(azimuth), math.cos(polar)]
+        )
         views.append(_look_view(eye + [0, 0, 0.3 * radius], [0.0, 0.0, 0.3 * radius]))
     return views
 
@@ -146,25 +172,42 @@ def _room_views(rng, p: RenderParams) -> list[dict]:
 
 def _direction(azimuth: float, elevation: float) -> np.ndarray:
     # Elevation above 90 degrees continues over the zenith to the other side.
-    return np.array([math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth), math.sin(elevation)])
+    return np.array(
+        [math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth), math.sin(elevation)]
+    )
 
 
 def _point(location, irradiance: float, distance: float, radius: float) -> dict:
     # Blender point power P [W] gives irradiance ~ P / (4 pi d^2) at distance d.
-    return {"location": np.round(location, 5).tolist(), "power": round(4 * math.pi * distance**2 * irradiance, 4), "radius": radius}
+    return {
+        "location": np.round(location, 5).tolist(),
+        "power": round(4 * math.pi * distance**2 * irradiance, 4),
+        "radius": radius,
+    }
 
 
 def _lights(rng, p: RenderParams, kind: str, view: dict, target, hdris: tuple[str, ...]) -> list[dict]:
     lp, out = p.light, []
     for _ in range(p.lights_per_view):
         az = math.radians(rng.uniform(lp.azimuth_deg.lo, lp.azimuth_deg.hi))
-        el = math.radians(float(np.clip(rng.normal(lp.elevation_mean_deg, lp.elevation_std_deg), lp.elevation_clip_deg.lo, lp.elevation_clip_deg.hi)))
+        el = math.radians(
+            float(
+                np.clip(
+                    rng.normal(lp.elevation_mean_deg, lp.elevation_std_deg),
+                    lp.elevation_clip_deg.lo,
+                    lp.elevation_clip_deg.hi,
+                )
+            )
+        )
         strength = rng.uniform(lp.strength.lo, lp.strength.hi) * (1 + rng.uniform(-lp.jitter, lp.jitter))
         hdri = None
         if hdris and rng.uniform() < lp.hdri_probability:
             strength *= lp.point_scale_with_hdri
-            hdri = {"name": str(rng.choice(hdris)), "strength": round(float(rng.uniform(lp.hdri_strength.lo, lp.hdri_strength.hi)), 4),
-                    "rotation_deg": round(float(rng.uniform(0, 360)), 3)}
+            hdri = {
+                "name": str(rng.choice(hdris)),
+                "strength": round(float(rng.uniform(lp.hdri_strength.lo, lp.hdri_strength.hi)), 4),
+                "rotation_deg": round(float(rng.uniform(0, 360)), 3),
+            }
         e = strength * lp.irradiance_scale
         points = [_point(np.asarray(target) + lp.distance * _direction(az, el), e, lp.distance, lp.radius)]
         if kind == "room":  # the appendix's extra light behind the camera, within +-30 degrees
@@ -177,7 +220,9 @@ def _lights(rng, p: RenderParams, kind: str, view: dict, target, hdris: tuple[st
             location = eye + 1.5 * back
             # Half the main light's irradiance at the scene centre.
             points.append(_point(location, 0.5 * e, float(np.linalg.norm(location - np.asarray(target))), lp.radius))
-        out.append({"points": points, "hdri": hdri, "ambient": round(float(rng.uniform(lp.ambient.lo, lp.ambient.hi)), 5)})
+        out.append(
+            {"points": points, "hdri": hdri, "ambient": round(float(rng.uniform(lp.ambient.lo, lp.ambient.hi)), 5)}
+        )
     return out
 
 
@@ -210,12 +255,27 @@ def scene_spec(p: RenderParams, seed: int, split: str, index: int) -> dict:
         views = _room_views(rng, p)
     if p.assets_only:
         objects = []
-    placed_assets = [{"asset": a, "location": [float(x) for x in rng.uniform(-0.8, 0.8, 2).round(4)] + [0.0],
-                      "rotation_deg": [0.0, 0.0, round(float(rng.uniform(0, 360)), 3)], "size": 1.0} for a in assets]
+    placed_assets = [
+        {
+            "asset": a,
+            "location": [float(x) for x in rng.uniform(-0.8, 0.8, 2).round(4)] + [0.0],
+            "rotation_deg": [0.0, 0.0, round(float(rng.uniform(0, 360)), 3)],
+            "size": 1.0,
+        }
+        for a in assets
+    ]
     lights = [_lights(rng, p, kind, v, target, hdris) for v in views]
     return {
-        "id": f"{split}_{index:04d}", "split": split, "index": index, "kind": kind, "seed": seed,
+        "id": f"{split}_{index:04d}",
+        "split": split,
+        "index": index,
+        "kind": kind,
+        "seed": seed,
         "cycles_seed": int(rng.integers(0, 2**31 - 1)),
-        "objects": objects, "assets": placed_assets, "backdrop": backdrop, "target": target,
-        "views": views, "lights": lights,
+        "objects": objects,
+        "assets": placed_assets,
+        "backdrop": backdrop,
+        "target": target,
+        "views": views,
+        "lights": lights,
     }

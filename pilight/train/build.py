@@ -55,8 +55,11 @@ class Stack:
 
     def describe(self) -> dict[str, str]:
         """What each part is, for reports: substitutes are named, never silent."""
-        return {"codec": self.codec.name, "conditioning": self.model.conditioning.name,
-                "attention": f"cross-batch over {self.num_views} views" if self.cross_batch else "vanilla self-attention"}
+        return {
+            "codec": self.codec.name,
+            "conditioning": self.model.conditioning.name,
+            "attention": f"cross-batch over {self.num_views} views" if self.cross_batch else "vanilla self-attention",
+        }
 
 
 def build_stack(p, *, num_domains: int, num_views: int | None = None, cond_channels: int | None = None) -> Stack:
@@ -68,24 +71,39 @@ def build_stack(p, *, num_domains: int, num_views: int | None = None, cond_chann
     if p.unet.init == "pretrained":
         unet = load_pretrained_unet(p.unet.path, in_channels=latent + cond, num_domains=num_domains)
         if unet.config.out_channels != latent:
-            raise ModelError(f"unet.path {p.unet.path}: out_channels {unet.config.out_channels} != codec latent channels {latent} ({codec.name})")
+            raise ModelError(
+                f"unet.path {p.unet.path}: out_channels {unet.config.out_channels} != codec latent channels {latent} ({codec.name})"
+            )
     else:
         n = len(p.unet.block_out_channels)
         # Attention everywhere but the full-resolution level, where its token count is largest.
         down = ("DownBlock2D",) + ("CrossAttnDownBlock2D",) * (n - 1)
         up = ("CrossAttnUpBlock2D",) * (n - 1) + ("UpBlock2D",)
-        spec = UNetSpec(block_out_channels=tuple(p.unet.block_out_channels), layers_per_block=p.unet.layers_per_block,
-                        attention_head_dim=p.unet.attention_head_dim, cross_attention_dim=p.unet.cross_attention_dim,
-                        down_block_types=down, up_block_types=up, norm_num_groups=min(32, min(p.unet.block_out_channels)))
+        spec = UNetSpec(
+            block_out_channels=tuple(p.unet.block_out_channels),
+            layers_per_block=p.unet.layers_per_block,
+            attention_head_dim=p.unet.attention_head_dim,
+            cross_attention_dim=p.unet.cross_attention_dim,
+            down_block_types=down,
+            up_block_types=up,
+            norm_num_groups=min(32, min(p.unet.block_out_channels)),
+        )
         unet = build_unet(spec, in_channels=latent + cond, out_channels=latent, num_domains=num_domains)
     dim = unet.config.cross_attention_dim
     conditioning = make_conditioning(p.conditioning.kind, p.conditioning.clip_path, dim)
     if conditioning.dim != dim:
-        raise ModelError(f"conditioning {conditioning.name} gives {conditioning.dim}-d states but the UNet's cross_attention_dim is {dim}")
+        raise ModelError(
+            f"conditioning {conditioning.name} gives {conditioning.dim}-d states but the UNet's cross_attention_dim is {dim}"
+        )
     set_cross_batch_attention(unet, num_views if p.cross_batch_attention else None)
     s = p.schedule
-    model = DomainDiffusion(unet, conditioning, num_domains=num_domains, cond_channels=cond,
-                            terminal_timestep=s.num_train_timesteps - 1 if s.terminal_input == "zero" else None)
+    model = DomainDiffusion(
+        unet,
+        conditioning,
+        num_domains=num_domains,
+        cond_channels=cond,
+        terminal_timestep=s.num_train_timesteps - 1 if s.terminal_input == "zero" else None,
+    )
     scheduler = make_train_scheduler(s.num_train_timesteps, s.beta_schedule, s.rescale_zero_snr, s.timestep_spacing)
     return Stack(codec, model, scheduler, num_views, p.cross_batch_attention)
 
@@ -97,8 +115,11 @@ def check_image_size(size: tuple[int, int], factor: int, where: str) -> None:
 
 def trainable_state(model: torch.nn.Module) -> dict[str, torch.Tensor]:
     keep = {n for n, prm in model.named_parameters() if prm.requires_grad}
-    return {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()
-            if k in keep or not k.startswith("conditioning.")}
+    return {
+        k: v.detach().cpu().contiguous()
+        for k, v in model.state_dict().items()
+        if k in keep or not k.startswith("conditioning.")
+    }
 
 
 MODEL_FILE = "model.safetensors"
@@ -114,13 +135,18 @@ def save_model(stack: Stack, out_dir: Path, params: dict) -> None:
     state = trainable_state(stack.model)
     bad = [k for k, t in state.items() if t.is_floating_point() and not bool(torch.isfinite(t).all())]
     if bad:
-        raise ModelError(f"{out_dir / MODEL_FILE}: not saved, the trained weights hold NaN/Inf "
-                         f"({', '.join(bad[:3])}{', ...' if len(bad) > 3 else ''})")
+        raise ModelError(
+            f"{out_dir / MODEL_FILE}: not saved, the trained weights hold NaN/Inf "
+            f"({', '.join(bad[:3])}{', ...' if len(bad) > 3 else ''})"
+        )
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic.write_with(out_dir / MODEL_FILE, lambda tmp: save_file(state, tmp))
-    atomic.write_text(out_dir / "config.json", json.dumps({"params": params, "parts": stack.describe()}, indent=1, sort_keys=True))
-    atomic.write_json(out_dir / CHECKSUM_FILE, {"sha256": {MODEL_FILE: sha256_file(out_dir / MODEL_FILE)}},
-                      sort_keys=True)
+    atomic.write_text(
+        out_dir / "config.json", json.dumps({"params": params, "parts": stack.describe()}, indent=1, sort_keys=True)
+    )
+    atomic.write_json(
+        out_dir / CHECKSUM_FILE, {"sha256": {MODEL_FILE: sha256_file(out_dir / MODEL_FILE)}}, sort_keys=True
+    )
 
 
 def load_model(stack: Stack, model_dir: Path) -> None:
@@ -135,13 +161,16 @@ def load_model(stack: Stack, model_dir: Path) -> None:
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise ModelError(f"{sums}: unreadable ({type(exc).__name__}: {exc}); rerun the training stage") from None
         if sha256_file(path) != digest:
-            raise ModelError(f"{path}: sha256 differs from {sums}: the weights were damaged or only partly "
-                             "written; rerun the training stage")
+            raise ModelError(
+                f"{path}: sha256 differs from {sums}: the weights were damaged or only partly "
+                "written; rerun the training stage"
+            )
     try:
         state = load_file(str(path))
     except Exception as exc:  # noqa: BLE001 - safetensors raises its own error types on truncation
-        raise ModelError(f"{path}: unreadable safetensors file ({exc}); truncated or not a model, "
-                         "rerun the training stage") from None
+        raise ModelError(
+            f"{path}: unreadable safetensors file ({exc}); truncated or not a model, rerun the training stage"
+        ) from None
     bad = [k for k, t in state.items() if t.is_floating_point() and not bool(torch.isfinite(t).all())]
     if bad:
         raise ModelError(f"{path}: weights hold NaN/Inf ({', '.join(bad[:3])}); rerun the training stage")
@@ -152,4 +181,6 @@ def load_model(stack: Stack, model_dir: Path) -> None:
         raise ModelError(f"{path}: does not match the params' model ({first[0].strip()})") from None
     missing = [k for k in missing if k in trainable_state(stack.model)]
     if missing or unexpected:
-        raise ModelError(f"{path}: does not match the params' model (missing {missing[:3]}, unexpected {unexpected[:3]})")
+        raise ModelError(
+            f"{path}: does not match the params' model (missing {missing[:3]}, unexpected {unexpected[:3]})"
+        )

@@ -8,31 +8,22 @@ Loss (paper, L_stage1): MSE(v_pred * m_z, v_target * m_z), m_z = the mask on the
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from pilight.data import schema
+from pilight.data.colour import linear_to_srgb, srgb_to_linear, to_uint8
 from pilight.data.shards import intrinsics_dataset, make_loader
 from pilight.diffusion.sampler import sample
-from pilight.diffusion.schedule import sample_timesteps, v_target
-from pilight.params import DOMAINS, IntrinsicsParams, SamplingParams
-from pilight.data.schema import to_uint8
+from pilight.diffusion.schedule import sample_timesteps
 from pilight.eval.grids import labelled_grid
+from pilight.params import DOMAINS, IntrinsicsParams, SamplingParams
 from pilight.train.build import PREVIEW_SAMPLING, Stack, build_stack
-
-
-def linear_to_srgb(x: torch.Tensor) -> torch.Tensor:
-    x = x.clamp(0, 1)
-    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(0.0031308) ** (1 / 2.4) - 0.055)
-
-
-def srgb_to_linear(y: torch.Tensor) -> torch.Tensor:
-    y = y.clamp(0, 1)
-    return torch.where(y <= 0.04045, y / 12.92, ((y + 0.055) / 1.055) ** 2.4)
 
 
 def domain_targets(batch: dict, domains: tuple[str, ...] = DOMAINS, albedo_space: str = "linear") -> torch.Tensor:
@@ -41,7 +32,7 @@ def domain_targets(batch: dict, domains: tuple[str, ...] = DOMAINS, albedo_space
     maps = []
     for d in domains:
         x = batch[d]
-        x = schema.to_model(d, linear_to_srgb(x) if d == "albedo" and albedo_space == "srgb" else x)
+        x = schema.to_model(d, linear_to_srgb(x.clamp(0, 1)) if d == "albedo" and albedo_space == "srgb" else x)
         maps.append(x.expand(-1, 3, -1, -1) if x.shape[1] == 1 else x)
     return torch.stack(maps, dim=1)
 
@@ -56,7 +47,7 @@ def targets_to_maps(x: torch.Tensor, domains: tuple[str, ...], albedo_space: str
         elif d in ("roughness", "metallic"):
             out[d] = schema.from_model(d, y.mean(dim=1, keepdim=True)).clamp(0, 1)
         else:
-            a = schema.from_model(d, y).clamp(0, 1)
+            a = schema.from_model(d, y).clamp(0, 1)  # in [0, 1]: the sRGB curve's domain
             out[d] = srgb_to_linear(a) if albedo_space == "srgb" else a
     return out
 
@@ -88,8 +79,9 @@ class IntrinsicsTask:
         ds.set_epoch(epoch)
         return make_loader(ds, self.p.train.batch_size, num_workers=self.p.train.num_workers, drop_last=True)
 
-    def loss(self, batch: dict, generator: torch.Generator,
-             model: torch.nn.Module | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    def loss(
+        self, batch: dict, generator: torch.Generator, model: torch.nn.Module | None = None
+    ) -> tuple[torch.Tensor, dict[str, float]]:
         """``model``: what the loop prepared (a DDP wrapper under several processes); default the stack's."""
         s, V = self.stack, len(DOMAINS)
         model = s.model if model is None else model
@@ -101,21 +93,29 @@ class IntrinsicsTask:
             z_cond = s.codec.encode(image).repeat_interleave(V, 0)
         m = latent_mask(batch["mask"].to(dev), s.codec.factor).repeat_interleave(V, 0)
         # One timestep per sample, shared by its V domains: they denoise together.
-        t = sample_timesteps(B, s.scheduler.config.num_train_timesteps, self.p.train.terminal_fraction,
-                             generator).repeat_interleave(V)
+        t = sample_timesteps(
+            B, s.scheduler.config.num_train_timesteps, self.p.train.terminal_fraction, generator
+        ).repeat_interleave(V)
         noise = torch.randn(z0.shape, generator=generator).to(dev)
-        drop = (torch.rand(B, generator=generator) < self.p.train.cond_dropout).to(dev)  # CFG needs an unconditional model
+        drop = (torch.rand(B, generator=generator) < self.p.train.cond_dropout).to(
+            dev
+        )  # CFG needs an unconditional model
         t = t.to(dev)
         x_t = s.scheduler.add_noise(z0, noise, t)
         z_cond = z_cond * (~drop).repeat_interleave(V).to(z_cond.dtype)[:, None, None, None]
         domain_ids = torch.arange(V, device=dev).repeat(B)
         v = model(x_t, z_cond, t, domain_ids, condition_images=image, drop=drop)
-        loss = masked_latent_mse(v.float(), v_target(z0, noise, s.alphas_cumprod(dev), t).float(), m)
+        loss = masked_latent_mse(v.float(), s.scheduler.get_velocity(z0, noise, t).float(), m)
         return loss, {"mask_fraction": float(m.mean())}
 
     @torch.no_grad()
-    def predict(self, image: torch.Tensor, domains: tuple[str, ...], sp: SamplingParams,
-                generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+    def predict(
+        self,
+        image: torch.Tensor,
+        domains: tuple[str, ...],
+        sp: SamplingParams,
+        generator: torch.Generator | None = None,
+    ) -> dict[str, torch.Tensor]:
         """Linear HDR image batch (B, 3, H, W) -> predicted maps for `domains`, all in one batched pass."""
         s = self.stack
         dev = next(s.model.parameters()).device
@@ -124,9 +124,21 @@ class IntrinsicsTask:
         z_cond = s.codec.encode(x).repeat_interleave(V, 0)
         ids = torch.tensor([DOMAINS.index(d) for d in domains], device=dev).repeat(B)
         ehs = s.encode_condition(x, torch.zeros(B, dtype=torch.bool, device=dev)).repeat_interleave(V, 0)
-        z0 = sample(s.model, z_cond, ids, ehs, num_views=V, steps=sp.steps, cfg_scale=sp.cfg_scale,
-                    timestep_spacing=sp.timestep_spacing, mode=sp.mode, ensemble=sp.ensemble, generator=generator,
-                    null_hidden_states=s.null_condition(ehs), scheduler_config=s.scheduler.config)
+        z0 = sample(
+            s.model,
+            z_cond,
+            ids,
+            ehs,
+            num_views=V,
+            steps=sp.steps,
+            cfg_scale=sp.cfg_scale,
+            timestep_spacing=sp.timestep_spacing,
+            mode=sp.mode,
+            ensemble=sp.ensemble,
+            generator=generator,
+            null_hidden_states=s.null_condition(ehs),
+            scheduler_config=s.scheduler.config,
+        )
         pred = s.codec.decode(z0).float().unflatten(0, (B, V))
         return targets_to_maps(pred, domains, self.p.albedo_space)
 

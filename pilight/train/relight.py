@@ -14,7 +14,7 @@ Loss (paper, final loss):
 
     L = L_vpred + (1/max(t, t_min)) (lambda_ds L_DS + lambda_ps L_PS + lambda_rec L_rec)
 
-L_vpred = MSE(v, v_target) on the latents of all branches. ``lambda_image`` (ours; 0 = the paper) adds
+L_vpred = MSE(v, v_target) (v_target: diffusers' DDPMScheduler.get_velocity) on the latents of all branches. ``lambda_image`` (ours; 0 = the paper) adds
 E2E-FT's task loss where single-step inference runs: lambda_image * MSE(tonemap(I_relit), tonemap(I_b))
 on the samples drawn at t = T - 1 (Garcia et al. 2024, "Fine-tuning image-conditional diffusion
 models is easier than you think"), not weighted by 1/t, which there is 1/999. The physics terms act on the decoded x0
@@ -35,38 +35,53 @@ from __future__ import annotations
 
 import json
 import warnings
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from pilight.data import schema
+from pilight.data.colour import to_uint8
 from pilight.data.schema import DataError
 from pilight.data.shards import make_loader, relight_dataset
 from pilight.diffusion.codec import cell_mean, cell_smooth
 from pilight.diffusion.sampler import sample
-from pilight.diffusion.schedule import sample_timesteps, v_target, v_to_x0
+from pilight.diffusion.schedule import sample_timesteps, v_to_x0
+from pilight.eval.grids import labelled_grid
 from pilight.params import RelightParams, SamplingParams
 from pilight.physics import make_feature_extractor, masked_mse, physics_loss
 from pilight.physics.calculated import diffuse_calculated
 from pilight.relight import physics_first as pf
-from pilight.relight.branches import (branch_layout, branch_targets, cond_width, condition_images, encode_conditions,
-                                      physics_first_images)
+from pilight.relight.branches import (
+    branch_layout,
+    branch_targets,
+    cond_width,
+    condition_images,
+    encode_conditions,
+    physics_first_images,
+)
 from pilight.relight.conditions import PRED_DOMAINS, choose_intrinsics, load_condition_predictions
 from pilight.relight.encoding import gain_decode, gain_encode, tonemap
 from pilight.relight.physics_terms import PHYSICS_SPACE, physics_terms
 from pilight.train.build import PREVIEW_SAMPLING, Stack, build_stack
-from pilight.data.schema import to_uint8
-from pilight.eval.grids import labelled_grid
 
 
 class RelightTask:
     """The stage-2 Task for pilight.train.loop.train."""
 
-    def __init__(self, p: RelightParams, shard_dir: Path, *, seed: int, pred_dir: Path | None = None,
-                 device: str = "cpu", physics_space: str = PHYSICS_SPACE):
+    def __init__(
+        self,
+        p: RelightParams,
+        shard_dir: Path,
+        *,
+        seed: int,
+        pred_dir: Path | None = None,
+        device: str = "cpu",
+        physics_space: str = PHYSICS_SPACE,
+    ):
         self.p, self.shard_dir, self.seed, self.device = p, Path(shard_dir), seed, device
         self.physics_first = p.physics_first
         self.layout = branch_layout(p.decomposition, p.d_calc_condition, p.physics_first)
@@ -83,27 +98,38 @@ class RelightTask:
         self.pred_share = {"gt": 0.0, "pred": 1.0, "mix": p.pred_probability}[p.conditions]
         self.preds = None
         if self.pred_share > 0:
-            why = f"relight.conditions is {p.conditions!r}" + (f" (pred_probability {p.pred_probability})" if p.conditions == "mix" else "")
+            why = f"relight.conditions is {p.conditions!r}" + (
+                f" (pred_probability {p.pred_probability})" if p.conditions == "mix" else ""
+            )
             self.preds = load_condition_predictions(self.shard_dir, pred_dir, "train", why)
         if not p.decomposition:
-            warnings.warn("relight.decomposition is false: no diffuse/specular branches, so L_DS and L_PS are "
-                          "undefined and logged as 0 (ds_ps_defined = 0)", stacklevel=2)
+            warnings.warn(
+                "relight.decomposition is false: no diffuse/specular branches, so L_DS and L_PS are "
+                "undefined and logged as 0 (ds_ps_defined = 0)",
+                stacklevel=2,
+            )
 
     def describe(self) -> dict[str, Any]:
-        return {**self.stack.describe(), "rec_features": self.extractor.name, "relit_target": self.p.relit_target,
-                "relit_resolution": self.p.relit_resolution, "physics_first": self.physics_first,
-                "albedo_source": self.p.albedo_source if self.physics_first else None,
-                "source_light": self.p.source_light if self.physics_first else None,
-                "specular_anchor": self.p.specular_anchor if self.physics_first else None,
-                "physics_space": self.physics_space,
-                "branches": list(self.branches), "conditions": self.p.conditions,
-                "condition_maps": {b: list(m) for b, m in self.layout.items()},
-                "d_calc": f"Lambertian lookup of the {self.p.ds_ball} ball x (1 - metallic)"}
+        return {
+            **self.stack.describe(),
+            "rec_features": self.extractor.name,
+            "relit_target": self.p.relit_target,
+            "relit_resolution": self.p.relit_resolution,
+            "physics_first": self.physics_first,
+            "albedo_source": self.p.albedo_source if self.physics_first else None,
+            "source_light": self.p.source_light if self.physics_first else None,
+            "specular_anchor": self.p.specular_anchor if self.physics_first else None,
+            "physics_space": self.physics_space,
+            "branches": list(self.branches),
+            "conditions": self.p.conditions,
+            "condition_maps": {b: list(m) for b, m in self.layout.items()},
+            "d_calc": f"Lambertian lookup of the {self.p.ds_ball} ball x (1 - metallic)",
+        }
 
     def trainable(self) -> torch.nn.Module:
         return self.stack.model
 
-    def to(self, device) -> "RelightTask":
+    def to(self, device) -> RelightTask:
         if isinstance(self.stack.codec, torch.nn.Module):
             self.stack.codec.to(device)
         self.extractor.to(device)
@@ -117,8 +143,10 @@ class RelightTask:
     def _ball(self, batch: dict) -> torch.Tensor:
         if self.p.ds_ball == "lambertian":
             if "ball_lambertian_b" not in batch:
-                raise DataError("relight.ds_ball is 'lambertian' but the shards have no ball_lambertian "
-                                "(render.lambertian_ball: true, then re-render)")
+                raise DataError(
+                    "relight.ds_ball is 'lambertian' but the shards have no ball_lambertian "
+                    "(render.lambertian_ball: true, then re-render)"
+                )
             return batch["ball_lambertian_b"]
         return batch["ball_b"]
 
@@ -133,7 +161,7 @@ class RelightTask:
         i, r = self.layout["relit"].index("image"), self.branches.index("relit")
         per_item = z_cond.unflatten(0, (-1, self.V))
         offset = torch.zeros_like(per_item[:, :, :lc])
-        offset[:, r] = per_item[:, r, i * lc:(i + 1) * lc]
+        offset[:, r] = per_item[:, r, i * lc : (i + 1) * lc]
         return offset.flatten(0, 1)
 
     def _relit_target(self, y_b: torch.Tensor, y_a: torch.Tensor) -> torch.Tensor:
@@ -157,7 +185,7 @@ class RelightTask:
             out = y_a + cell_smooth(out - y_a, cell)
         else:
             return y
-        return torch.cat([y[:, :r], out[:, None], y[:, r + 1:]], dim=1)
+        return torch.cat([y[:, :r], out[:, None], y[:, r + 1 :]], dim=1)
 
     @property
     def _cell(self) -> int:
@@ -171,13 +199,23 @@ class RelightTask:
             return condition_images(image_a, intr, ball_b, mask, self.with_d_calc), None
         rendered = self.p.albedo_source == "effective" and self.p.source_light == "rendered"
         if rendered and "ball_a" not in batch:
-            raise DataError("relight.source_light is 'rendered' but the batch has no ball_a (the input's own light "
-                            "ball): re-shard with this version, or use source_light: estimated (a photo has no ball)")
+            raise DataError(
+                "relight.source_light is 'rendered' but the batch has no ball_a (the input's own light "
+                "ball): re-shard with this version, or use source_light: estimated (a photo has no ball)"
+            )
         opt = lambda k: batch[k].to(dev) if k in batch and rendered else None
-        anc = pf.anchors(image_a, intr, mask, ball_b, batch["ball_lambertian_b"].to(dev) if "ball_lambertian_b" in batch
-                         else None, albedo_source=self.p.albedo_source,
-                         ball_a=opt("ball_a"), lambertian_a=opt("ball_lambertian_a"),
-                         smooth_cell=self._cell, specular=self.p.specular_anchor)
+        anc = pf.anchors(
+            image_a,
+            intr,
+            mask,
+            ball_b,
+            batch["ball_lambertian_b"].to(dev) if "ball_lambertian_b" in batch else None,
+            albedo_source=self.p.albedo_source,
+            ball_a=opt("ball_a"),
+            lambertian_a=opt("ball_lambertian_a"),
+            smooth_cell=self._cell,
+            specular=self.p.specular_anchor,
+        )
         return physics_first_images(image_a, intr, ball_b, mask, anc), anc
 
     def _physics_first_targets(self, batch: dict, anc: pf.Anchors, y_a: torch.Tensor, dev) -> torch.Tensor:
@@ -189,8 +227,9 @@ class RelightTask:
         g_s = pf.gain_of(spec_b, anc.s_calc, anc.eps)
         return torch.stack([cell_mean(g, self._cell) for g in (g_r, g_d, g_s)], dim=1)
 
-    def _physics_first_outputs(self, y: torch.Tensor, anc: pf.Anchors, y_a: torch.Tensor,
-                               mask: torch.Tensor) -> dict[str, torch.Tensor]:
+    def _physics_first_outputs(
+        self, y: torch.Tensor, anc: pf.Anchors, y_a: torch.Tensor, mask: torch.Tensor
+    ) -> dict[str, torch.Tensor]:
         """Decoded gains (B, 3, 3, H, W) -> linear {relit, diffuse, specular, albedo}: A_x D + S on the mask,
         the relit branch's gain on the input off it."""
         g_r, g_d, g_s = (cell_smooth(y[:, i].float(), self._cell) for i in range(3))
@@ -199,8 +238,9 @@ class RelightTask:
         out["relit"] = torch.where(mask > 0.5, out["relit"], off)
         return out
 
-    def loss(self, batch: dict, generator: torch.Generator,
-             model: torch.nn.Module | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    def loss(
+        self, batch: dict, generator: torch.Generator, model: torch.nn.Module | None = None
+    ) -> tuple[torch.Tensor, dict[str, float]]:
         """``model``: what the loop prepared (a DDP wrapper under several processes); default the stack's."""
         s, V, p = self.stack, self.V, self.p
         model = s.model if model is None else model
@@ -232,10 +272,14 @@ class RelightTask:
         ids = torch.arange(V, device=dev).repeat(B)
         v = model(x_t, z_cond, tv, ids, condition_images=maps["image"], drop=drop).float()
         alphas = s.alphas_cumprod(dev)
-        l_v = F.mse_loss(v, v_target(z0, noise, alphas, tv).float())
+        l_v = F.mse_loss(v, s.scheduler.get_velocity(z0, noise, tv).float())
         lambdas = (p.lambda_ds, p.lambda_ps, p.lambda_rec)
-        logs = {"l_vpred": float(l_v.detach()), "pred_conditions": float(use_pred.float().mean()),
-                "ds_ps_defined": float(p.decomposition), "t_mean": float(t.float().mean())}
+        logs = {
+            "l_vpred": float(l_v.detach()),
+            "pred_conditions": float(use_pred.float().mean()),
+            "ds_ps_defined": float(p.decomposition),
+            "t_mean": float(t.float().mean()),
+        }
         if not any(lambdas) and not p.lambda_image:  # the no-physics ablation: no decode at all
             logs.update(l_ds=0.0, l_ps=0.0, l_rec=0.0, l_physics=0.0, l_image=0.0)
             return l_v, logs
@@ -253,11 +297,19 @@ class RelightTask:
         d_calc = None
         if p.decomposition:
             with torch.no_grad():
-                d_calc = diffuse_calculated(self._ball(batch).to(dev), batch["normal"].to(dev), mask,
-                                            batch["metallic"].to(dev))
-        terms = physics_terms(y, albedo=albedo, d_calc=d_calc, mask=mask,
-                              image_a=batch["image_a"].to(dev), extractor=self.extractor, space=self.physics_space,
-                              ps_on_mask=anc is not None)
+                d_calc = diffuse_calculated(
+                    self._ball(batch).to(dev), batch["normal"].to(dev), mask, batch["metallic"].to(dev)
+                )
+        terms = physics_terms(
+            y,
+            albedo=albedo,
+            d_calc=d_calc,
+            mask=mask,
+            image_a=batch["image_a"].to(dev),
+            extractor=self.extractor,
+            space=self.physics_space,
+            ps_on_mask=anc is not None,
+        )
         phys = physics_loss(t.to(dev), terms["ds"], terms["ps"], terms["rec"], lambdas, p.t_min)
         logs.update({f"l_{k}": float(v.detach().mean()) for k, v in terms.items()})
         logs["l_physics"] = float(phys.detach())
@@ -269,8 +321,13 @@ class RelightTask:
         return l_v + phys + p.lambda_image * (l_img * terminal).mean(), logs
 
     @torch.no_grad()
-    def predict(self, batch: dict, sp: SamplingParams, generator: torch.Generator | None = None,
-                intr: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
+    def predict(
+        self,
+        batch: dict,
+        sp: SamplingParams,
+        generator: torch.Generator | None = None,
+        intr: dict[str, torch.Tensor] | None = None,
+    ) -> dict[str, torch.Tensor]:
         """Pairs batch -> linear HDR {relit, diffuse, specular} (B, 3, H, W), all branches in one batched pass
         (+ "albedo", the A_x of I = A_x D + S, with physics_first).
 
@@ -285,12 +342,25 @@ class RelightTask:
         z_cond = encode_conditions(s.codec, maps, self.layout, self.width)
         ids = torch.arange(V, device=dev).repeat(B)
         ehs = s.encode_condition(maps["image"], torch.zeros(B, dtype=torch.bool, device=dev)).repeat_interleave(V, 0)
-        z0 = sample(s.model, z_cond, ids, ehs, num_views=V, steps=sp.steps, cfg_scale=sp.cfg_scale,
-                    timestep_spacing=sp.timestep_spacing, mode=sp.mode, ensemble=sp.ensemble, generator=generator,
-                    null_hidden_states=s.null_condition(ehs), scheduler_config=s.scheduler.config)
+        z0 = sample(
+            s.model,
+            z_cond,
+            ids,
+            ehs,
+            num_views=V,
+            steps=sp.steps,
+            cfg_scale=sp.cfg_scale,
+            timestep_spacing=sp.timestep_spacing,
+            mode=sp.mode,
+            ensemble=sp.ensemble,
+            generator=generator,
+            null_hidden_states=s.null_condition(ehs),
+            scheduler_config=s.scheduler.config,
+        )
         if anc is not None:
-            out = self._physics_first_outputs(s.codec.decode(z0).float().unflatten(0, (B, V)), anc, maps["image"],
-                                              batch["mask"].to(dev))
+            out = self._physics_first_outputs(
+                s.codec.decode(z0).float().unflatten(0, (B, V)), anc, maps["image"], batch["mask"].to(dev)
+            )
             return {k: v.clamp(0, schema.HDR_MAX) for k, v in out.items()}
         offset = self._input_offset(z_cond)
         if offset is not None:
@@ -319,7 +389,7 @@ class RelightTask:
 def _latent_channels(p: RelightParams) -> int:
     """The codec's latent width without building the UNet (pixel: 3 f^2; VAE: from its config)."""
     if p.codec.kind == "pixel":
-        return 3 * p.codec.factor ** 2
+        return 3 * p.codec.factor**2
     try:
         return int(json.loads((Path(p.codec.path) / "config.json").read_text()).get("latent_channels", 4))
     except (OSError, ValueError):

@@ -44,8 +44,23 @@ def test_decompose_writes_every_map_at_the_input_size_with_unit_normals(tmp_path
 
 def test_relight_several_lights_one_output_each_and_rerun_skips(tmp_path, capsys, tiny_models, astronaut_png):
     out = tmp_path / "out"
-    argv = ["relight", astronaut_png, "-o", out, "--models", tiny_models, "--light", "left", "--light", "right",
-            "--azimuth", "30", "--elevation", "45", *FAST]
+    argv = [
+        "relight",
+        astronaut_png,
+        "-o",
+        out,
+        "--models",
+        tiny_models,
+        "--light",
+        "left",
+        "--light",
+        "right",
+        "--azimuth",
+        "30",
+        "--elevation",
+        "45",
+        *FAST,
+    ]
     rc, err = run(capsys, *argv)
     assert rc == 0, err
     for light in ("left", "right", "az30_el45"):
@@ -92,11 +107,16 @@ def test_missing_models_say_how_to_make_them(tmp_path, capsys, astronaut_png):
 # --- bad input: a clear message naming the file, a non-zero exit, nothing under a final name ------
 def huge_png(path, width: int, height: int) -> None:
     """A valid PNG header for a huge image with (almost) no pixel data: refused from the header."""
+
     def chunk(kind: bytes, body: bytes) -> bytes:
         return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF)
 
-    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))
-                     + chunk(b"IDAT", zlib.compress(b"\x00" * 16)) + chunk(b"IEND", b""))
+    path.write_bytes(
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))
+        + chunk(b"IDAT", zlib.compress(b"\x00" * 16))
+        + chunk(b"IEND", b"")
+    )
 
 
 def bad_inputs(tmp_path):
@@ -108,8 +128,12 @@ def bad_inputs(tmp_path):
     Image.fromarray(np.zeros((1, 1, 3), np.uint8)).save(tiny)
     huge = tmp_path / "huge.png"
     huge_png(huge, 60000, 60000)
-    return {"empty": (empty, "0 bytes"), "garbage": (garbage, "not a readable image"),
-            "one_pixel": (tiny, "too small"), "huge": (huge, "--max-memory")}
+    return {
+        "empty": (empty, "0 bytes"),
+        "garbage": (garbage, "not a readable image"),
+        "one_pixel": (tiny, "too small"),
+        "huge": (huge, "--max-memory"),
+    }
 
 
 @pytest.mark.parametrize("case", ["empty", "garbage", "one_pixel", "huge"])
@@ -146,8 +170,9 @@ def test_one_bad_photo_stops_the_batch_before_any_work(tmp_path, capsys, tiny_mo
 
 
 def test_unknown_light_name(tmp_path, capsys, tiny_models, astronaut_png):
-    rc, err = run(capsys, "relight", astronaut_png, "-o", tmp_path / "out", "--models", tiny_models,
-                  "--light", "upstairs", *FAST)
+    rc, err = run(
+        capsys, "relight", astronaut_png, "-o", tmp_path / "out", "--models", tiny_models, "--light", "upstairs", *FAST
+    )
     assert rc == 2 and "upstairs" in err and "left|right|top|bottom|front" in err
     assert not (tmp_path / "out").exists()
 
@@ -157,8 +182,9 @@ def test_hdri_that_is_not_2_to_1(tmp_path, capsys, tiny_models, astronaut_png):
 
     hdri = tmp_path / "square.exr"
     write_exr(hdri, np.ones((32, 32, 3), np.float32), half=True)
-    rc, err = run(capsys, "relight", astronaut_png, "-o", tmp_path / "out", "--models", tiny_models,
-                  "--hdri", hdri, *FAST)
+    rc, err = run(
+        capsys, "relight", astronaut_png, "-o", tmp_path / "out", "--models", tiny_models, "--hdri", hdri, *FAST
+    )
     assert rc == 2 and str(hdri) in err and "2:1" in err
     assert not (tmp_path / "out").exists()
 
@@ -174,6 +200,15 @@ def test_same_name_photos_would_collide(tmp_path, capsys, tiny_models, astronaut
     for sub in ("x", "y"):
         (tmp_path / sub).mkdir()
         Image.fromarray(astronaut[::8, ::8]).save(tmp_path / sub / "shot.png")
-    rc, err = run(capsys, "decompose", tmp_path / "x" / "shot.png", tmp_path / "y" / "shot.png", "-o",
-                  tmp_path / "out", "--models", tiny_models, *FAST)
+    rc, err = run(
+        capsys,
+        "decompose",
+        tmp_path / "x" / "shot.png",
+        tmp_path / "y" / "shot.png",
+        "-o",
+        tmp_path / "out",
+        "--models",
+        tiny_models,
+        *FAST,
+    )
     assert rc == 1 and "shot" in err and "rename" in err

@@ -22,7 +22,9 @@ def lr_asymmetry(rgb: np.ndarray) -> float:
 
 @pytest.mark.slow
 def test_left_versus_right_light_flips_the_relit_asymmetry(astronaut):
-    if not ((MODELS / "intrinsics" / "model.safetensors").is_file() and (MODELS / "relight" / "model.safetensors").is_file()):
+    if not (
+        (MODELS / "intrinsics" / "model.safetensors").is_file() and (MODELS / "relight" / "model.safetensors").is_file()
+    ):
         pytest.skip(f"{MODELS} holds no trained models; run `dvc repro train_relight` first")
     from pilight import lights
     from pilight.photo import as_photo
@@ -31,5 +33,7 @@ def test_left_versus_right_light_flips_the_relit_asymmetry(astronaut):
     pipe = PILightPipeline.from_pretrained(MODELS, device="cpu", params=REPO / "params.yaml")
     out = pipe.relight(astronaut, [lights.named("left"), lights.named("right")])
     a_left, a_right = lr_asymmetry(out.relit[0]), lr_asymmetry(out.relit[1])
-    assert a_left < 0 < a_right, (f"relit (R - L) / (R + L): {a_left:+.3f} under the left light, {a_right:+.3f} under "
-                                  f"the right one (the photo itself: {lr_asymmetry(as_photo(astronaut).rgb):+.3f})")
+    assert a_left < 0 < a_right, (
+        f"relit (R - L) / (R + L): {a_left:+.3f} under the left light, {a_right:+.3f} under "
+        f"the right one (the photo itself: {lr_asymmetry(as_photo(astronaut).rgb):+.3f})"
+    )

@@ -13,8 +13,12 @@ from pilight.lights import LightError
 def side_means(ball: torch.Tensor) -> tuple[float, float, float, float]:
     """Mean of the left, right, top and bottom halves of a (3, S, S) ball."""
     s = ball.shape[-1] // 2
-    return (float(ball[:, :, :s].mean()), float(ball[:, :, s:].mean()),
-            float(ball[:, :s].mean()), float(ball[:, s:].mean()))
+    return (
+        float(ball[:, :, :s].mean()),
+        float(ball[:, :, s:].mean()),
+        float(ball[:, :s].mean()),
+        float(ball[:, s:].mean()),
+    )
 
 
 def test_named_lights_light_the_side_they_name():
@@ -28,7 +32,7 @@ def test_named_lights_light_the_side_they_name():
 
 def test_azimuth_and_elevation_convention():
     d = lights.direction
-    np.testing.assert_allclose(d(0, 0), [0, 0, 1], atol=1e-6)   # from the camera
+    np.testing.assert_allclose(d(0, 0), [0, 0, 1], atol=1e-6)  # from the camera
     np.testing.assert_allclose(d(90, 0), [1, 0, 0], atol=1e-6)  # from the right
     np.testing.assert_allclose(d(-90, 0), [-1, 0, 0], atol=1e-6)
     np.testing.assert_allclose(d(0, 90), [0, 1, 0], atol=1e-6)  # from above
@@ -41,7 +45,7 @@ def test_intensity_scales_the_light():
 def test_hdri_centre_is_ahead_and_rotate_turns_it_clockwise():
     h, w = 32, 64
     pano = np.zeros((h, w, 3), np.float32)
-    pano[h // 2 - 4:h // 2 + 4, w // 4 - 4:w // 4 + 4] = 50.0  # a bright patch at the left quarter
+    pano[h // 2 - 4 : h // 2 + 4, w // 4 - 4 : w // 4 + 4] = 50.0  # a bright patch at the left quarter
     left = lights.from_hdri(pano, 0.0, size=32).ball
     l, r, _, _ = side_means(left)
     assert l > 2 * r  # the left quarter of the panorama lights the ball's left
@@ -72,8 +76,10 @@ def test_bad_light_specs_say_what_is_wrong(tmp_path):
 
 
 def test_one_hdri_with_several_rotations_gives_one_light_each():
+    import pathlib
+    import tempfile
+
     from pilight.data.exr import write_exr
-    import tempfile, pathlib
 
     with tempfile.TemporaryDirectory() as d:
         path = pathlib.Path(d) / "env.exr"

@@ -27,8 +27,9 @@ def test_round_trip_gives_the_same_output_bytes(tmp_path, pipe, astronaut, tiny_
     for k in ("relit", "diffuse", "specular", "balls"):
         assert getattr(a_rel, k).tobytes() == getattr(b_rel, k).tobytes(), k
     for stage in ("intrinsics", "relight"):
-        assert ((tmp_path / "saved" / stage / "model.safetensors").read_bytes()
-                == (tiny_models / stage / "model.safetensors").read_bytes())
+        assert (tmp_path / "saved" / stage / "model.safetensors").read_bytes() == (
+            tiny_models / stage / "model.safetensors"
+        ).read_bytes()
 
 
 def test_outputs_at_input_size_and_intrinsics_reused(pipe, astronaut):

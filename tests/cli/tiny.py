@@ -23,7 +23,9 @@ def save_tiny_models(folder: Path, seed: int = 0, unet: UNetParams | None = TINY
     torch.manual_seed(seed)
     p0 = {s: load_section(s, REPO / "params.yaml") for s in ("intrinsics", "relight")}
     p1 = load_section("intrinsics", REPO / "params.yaml").model_copy(update={"unet": unet or p0["intrinsics"].unet})
-    p2 = load_section("relight", REPO / "params.yaml").model_copy(update={"unet": unet or p0["relight"].unet, "conditions": "gt"})
+    p2 = load_section("relight", REPO / "params.yaml").model_copy(
+        update={"unet": unet or p0["relight"].unet, "conditions": "gt"}
+    )
     t1 = IntrinsicsTask(p1, folder, seed=seed)
     t2 = RelightTask(p2, folder, seed=seed)
     save_model(t1.stack, folder / "intrinsics", p1.model_dump(mode="json"))

@@ -23,8 +23,15 @@ from pilight.data.exr import read_exr, write_exr
 from pilight.data.pairs import read_pairs
 from pilight.data.schema import DataError, SampleError
 from pilight.data.shard_params import ShardParams
-from pilight.data.shards import (eval_dataset, exr_decoder, intrinsics_dataset, make_loader, read_index,
-                                 relight_dataset, write_shards)
+from pilight.data.shards import (
+    eval_dataset,
+    exr_decoder,
+    intrinsics_dataset,
+    make_loader,
+    read_index,
+    relight_dataset,
+    write_shards,
+)
 from pilight.data.splits import SplitError, read_split
 
 REPO = Path(__file__).resolve().parents[2]
@@ -39,14 +46,33 @@ def write_fake_renders(root: Path, scenes=SCENES, size: int = 16, ball: int = 8,
     for sid, views, lights in scenes:
         split = sid.split("_")[0]
         hdris = [None if i % 2 else f"hdri{i}_{split}" for i in range(lights)]
-        manifest["scenes"].append({"id": sid, "kind": "object", "split": split, "views": views,
-                                   "lights": lights, "hdris": sorted({h for h in hdris if h})})
-        cams = [{"view": v, "world_from_camera": np.eye(4).tolist(), "K": np.eye(3).tolist(), "lens_mm": 50.0}
-                for v in range(views)]
+        manifest["scenes"].append(
+            {
+                "id": sid,
+                "kind": "object",
+                "split": split,
+                "views": views,
+                "lights": lights,
+                "hdris": sorted({h for h in hdris if h}),
+            }
+        )
+        cams = [
+            {"view": v, "world_from_camera": np.eye(4).tolist(), "K": np.eye(3).tolist(), "lens_mm": 50.0}
+            for v in range(views)
+        ]
         # As the render stage writes it: lights are sampled per view, so a list per view.
-        lts = [[{"light": i, "points": [{"power": 10.0 + v}],
-                 "hdri": {"name": hdris[i], "strength": 1.0, "rotation_deg": 30.0} if hdris[i] else None,
-                 "ambient": 0.1} for i in range(lights)] for v in range(views)]
+        lts = [
+            [
+                {
+                    "light": i,
+                    "points": [{"power": 10.0 + v}],
+                    "hdri": {"name": hdris[i], "strength": 1.0, "rotation_deg": 30.0} if hdris[i] else None,
+                    "ambient": 0.1,
+                }
+                for i in range(lights)
+            ]
+            for v in range(views)
+        ]
         (root / sid).mkdir(parents=True)
         (root / sid / "scene.json").write_text(json.dumps({"seed": 1, "cameras": cams, "lights": lts}))
         for v in range(views):
@@ -54,15 +80,25 @@ def write_fake_renders(root: Path, scenes=SCENES, size: int = 16, ball: int = 8,
             n = rng.normal(size=(size, size, 3))
             normal = n / np.linalg.norm(n, axis=-1, keepdims=True) * mask
             albedo = rng.random((size, size, 3), dtype=np.float32)
-            view_maps = {"albedo": albedo, "normal": normal, "mask": mask,
-                         "roughness": rng.random((size, size, 1)), "metallic": rng.random((size, size, 1))}
+            view_maps = {
+                "albedo": albedo,
+                "normal": normal,
+                "mask": mask,
+                "roughness": rng.random((size, size, 1)),
+                "metallic": rng.random((size, size, 1)),
+            }
             for name, arr in view_maps.items():
                 write_exr(layout.map_path(root, sid, v, name), arr, half=name not in layout.FLOAT32_MAPS)
             for li in range(lights):
                 d = rng.random((size, size, 3), dtype=np.float32) * 4
                 s = rng.random((size, size, 3), dtype=np.float32) * 0.5
-                maps = {"image": albedo * d + s, "diffuse": d, "specular": s,
-                        "ball": rng.random((ball, ball, 3)) * 2, "ball_lambertian": rng.random((ball, ball, 3))}
+                maps = {
+                    "image": albedo * d + s,
+                    "diffuse": d,
+                    "specular": s,
+                    "ball": rng.random((ball, ball, 3)) * 2,
+                    "ball_lambertian": rng.random((ball, ball, 3)),
+                }
                 for name, arr in maps.items():
                     write_exr(layout.map_path(root, sid, v, name, li), arr, half=name not in layout.FLOAT32_MAPS)
             (layout.view_dir(root, sid, v) / layout.DONE_MARKER).touch()
@@ -181,8 +217,20 @@ def test_stage_script_exits_nonzero_with_clear_message(renders, tmp_path, case):
     params = tmp_path / "params.yaml"
     params.write_text("base:\n  seed: 3\nrender: {}\nshard:\n  maxcount: 8\n")
     out = tmp_path / "out"
-    proc = subprocess.run([sys.executable, str(REPO / "stages" / "shard.py"), "--params", str(params),
-                           "--renders", str(renders), "--out", str(out)], capture_output=True, text=True)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(REPO / "stages" / "shard.py"),
+            "--params",
+            str(params),
+            "--renders",
+            str(renders),
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 1
     assert key in proc.stderr and str(bad) in proc.stderr
     assert "Traceback" not in proc.stderr
@@ -192,8 +240,16 @@ def test_stage_script_exits_nonzero_with_clear_message(renders, tmp_path, case):
 def test_stage_script_succeeds_and_rejects_bad_params(renders, tmp_path):
     params = tmp_path / "params.yaml"
     params.write_text("base:\n  seed: 3\nrender: {}\nshard:\n  maxcount: 0\n")
-    cmd = [sys.executable, str(REPO / "stages" / "shard.py"), "--params", str(params),
-           "--renders", str(renders), "--out", str(tmp_path / "out")]
+    cmd = [
+        sys.executable,
+        str(REPO / "stages" / "shard.py"),
+        "--params",
+        str(params),
+        "--renders",
+        str(renders),
+        "--out",
+        str(tmp_path / "out"),
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     assert proc.returncode == 2 and "shard.maxcount = 0" in proc.stderr, proc.stderr
     params.write_text("base:\n  seed: 3\nrender: {}\nshard:\n  maxcount: 8\n")

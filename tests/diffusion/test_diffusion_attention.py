@@ -10,10 +10,18 @@ from pilight.diffusion.attention import CrossBatchAttnProcessor, set_cross_batch
 
 def _tiny_unet():
     torch.manual_seed(0)
-    return UNet2DConditionModel(sample_size=8, in_channels=4, out_channels=4, block_out_channels=(32, 32),
-                                layers_per_block=1, norm_num_groups=8, cross_attention_dim=16, attention_head_dim=4,
-                                down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"),
-                                up_block_types=("UpBlock2D", "CrossAttnUpBlock2D")).eval()
+    return UNet2DConditionModel(
+        sample_size=8,
+        in_channels=4,
+        out_channels=4,
+        block_out_channels=(32, 32),
+        layers_per_block=1,
+        norm_num_groups=8,
+        cross_attention_dim=16,
+        attention_head_dim=4,
+        down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"),
+        up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"),
+    ).eval()
 
 
 def _unet_out(unet, x, ehs):
@@ -56,7 +64,7 @@ def test_matches_appendix_equations():
             cat = torch.cat([z[s * views + j] for j in order])  # (V*N, C)
             q, k, v = attn.to_q(z[i]), attn.to_k(cat), attn.to_v(cat)
             q, k, v = (t.view(t.shape[0], 4, 8).transpose(0, 1) for t in (q, k, v))
-            w = torch.softmax(q @ k.transpose(1, 2) / 8 ** 0.5, dim=-1)
+            w = torch.softmax(q @ k.transpose(1, 2) / 8**0.5, dim=-1)
             ref = attn.to_out[0]((w @ v).transpose(0, 1).reshape(-1, 32))
             torch.testing.assert_close(out[i], ref, atol=1e-5, rtol=0)
 
@@ -65,8 +73,12 @@ def test_single_view_equals_diffusers_on_whole_unet():
     unet = _tiny_unet()
     x, ehs = _unet_inputs(4)
     ref = _unet_out(unet, x, ehs)
-    unet.set_attn_processor({n: CrossBatchAttnProcessor(1) if n.endswith("attn1.processor") else AttnProcessor2_0()
-                             for n in unet.attn_processors})
+    unet.set_attn_processor(
+        {
+            n: CrossBatchAttnProcessor(1) if n.endswith("attn1.processor") else AttnProcessor2_0()
+            for n in unet.attn_processors
+        }
+    )
     torch.testing.assert_close(_unet_out(unet, x, ehs), ref, atol=1e-6, rtol=0)
 
 

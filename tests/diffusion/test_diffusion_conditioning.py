@@ -4,14 +4,21 @@ import pytest
 import torch
 from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection
 
-from pilight.diffusion.conditioning import ClipImageEmbedding, LearnedEmbedding, make_conditioning, null_like
+from pilight.diffusion.conditioning import ClipImageEmbedding, LearnedEmbedding, make_conditioning
 
 
 @pytest.fixture(scope="module")
 def clip_dir(tmp_path_factory):
     torch.manual_seed(0)
-    cfg = CLIPVisionConfig(hidden_size=32, intermediate_size=64, num_hidden_layers=2, num_attention_heads=4,
-                           image_size=32, patch_size=8, projection_dim=24)
+    cfg = CLIPVisionConfig(
+        hidden_size=32,
+        intermediate_size=64,
+        num_hidden_layers=2,
+        num_attention_heads=4,
+        image_size=32,
+        patch_size=8,
+        projection_dim=24,
+    )
     path = tmp_path_factory.mktemp("models") / "tiny-clip"
     CLIPVisionModelWithProjection(cfg).save_pretrained(path)
     return path
@@ -48,8 +55,3 @@ def test_learned_embedding():
     assert LearnedEmbedding(8, tokens=3)(torch.zeros(2, 3, 4, 4)).shape == (2, 3, 8)
     with pytest.raises(ValueError, match="dim"):
         make_conditioning("learned")
-
-
-def test_null_like():
-    e = torch.randn(2, 1, 8)
-    assert torch.equal(null_like(e), torch.zeros(2, 1, 8))

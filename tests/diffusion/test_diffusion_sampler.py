@@ -9,17 +9,43 @@ from pilight.diffusion.sampler import sample
 from pilight.diffusion.schedule import make_train_scheduler
 from pilight.diffusion.unet import UNetSpec, build_unet
 
-TINY = UNetSpec(sample_size=8, block_out_channels=(32, 32), layers_per_block=1, attention_head_dim=4,
-                cross_attention_dim=16, norm_num_groups=8,
-                down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"), up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"))
+TINY = UNetSpec(
+    sample_size=8,
+    block_out_channels=(32, 32),
+    layers_per_block=1,
+    attention_head_dim=4,
+    cross_attention_dim=16,
+    norm_num_groups=8,
+    down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"),
+    up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"),
+)
 LATENT, COND, DOMAINS = 4, 6, 4
 
 
 def _model(cross_batch=True, views=4, terminal_timestep=None):
     torch.manual_seed(0)
     unet = build_unet(TINY, in_channels=LATENT + COND, out_channels=LATENT, num_domains=DOMAINS)
-    return DomainDiffusion(unet, LearnedEmbedding(16), DOMAINS, COND, num_views=views, cross_batch=cross_batch,
-                           terminal_timestep=terminal_timestep).eval()
+    return DomainDiffusion(
+        unet,
+        LearnedEmbedding(16),
+        DOMAINS,
+        COND,
+        num_views=views,
+        cross_batch=cross_batch,
+        terminal_timestep=terminal_timestep,
+    ).eval()
+
+
+def test_cfg_dropout_gives_dropped_samples_the_null_state():
+    """condition_states: the samples flagged in ``drop`` (classifier-free guidance's dropout, and its
+    unconditional branch) get the null state, zeros; the others keep their embedding."""
+    model = _model()
+    images = torch.rand(3, COND, 8, 8)
+    kept = model.condition_states(images)
+    assert kept.abs().sum() > 0
+    out = model.condition_states(images, torch.tensor([True, False, True]))
+    assert torch.equal(out[0], torch.zeros_like(out[0])) and torch.equal(out[2], torch.zeros_like(out[2]))
+    assert torch.equal(out[1], kept[1])
 
 
 def _inputs(samples, views, seed=0):
@@ -68,7 +94,9 @@ def test_forward_errors_name_numbers():
 def test_deterministic_with_seed_and_modes():
     model = _model()
     cond, ids, ehs, _ = _inputs(2, 4)
-    run = lambda seed, **kw: sample(model, cond, ids, ehs, num_views=4, generator=torch.Generator().manual_seed(seed), **kw)
+    run = lambda seed, **kw: sample(
+        model, cond, ids, ehs, num_views=4, generator=torch.Generator().manual_seed(seed), **kw
+    )
     a, b = run(0, steps=3), run(0, steps=3)
     assert a.shape == (8, LATENT, 8, 8) and torch.equal(a, b)
     assert not torch.equal(a, run(1, steps=3))
@@ -85,8 +113,9 @@ def test_cfg_groups_cond_and_uncond_separately():
     noise = torch.randn(n, LATENT, 8, 8, generator=torch.Generator().manual_seed(3))
     null = torch.randn_like(ehs)
     s = 3.0
-    out = sample(model, cond, ids, ehs, num_views=4, mode="single_step", cfg_scale=s, noise=noise,
-                 null_hidden_states=null)
+    out = sample(
+        model, cond, ids, ehs, num_views=4, mode="single_step", cfg_scale=s, noise=noise, null_hidden_states=null
+    )
     # reference: two separate (unbatched) calls
     sched = make_train_scheduler()
     t = torch.full((n,), 999)
@@ -103,7 +132,7 @@ def test_ensemble_is_mean_of_members():
     cond, ids, ehs, n = _inputs(1, 4)
     noise = torch.randn(3 * n, LATENT, 8, 8, generator=torch.Generator().manual_seed(5))
     out = sample(model, cond, ids, ehs, num_views=4, steps=2, ensemble=3, noise=noise)
-    members = [sample(model, cond, ids, ehs, num_views=4, steps=2, noise=noise[k * n:(k + 1) * n]) for k in range(3)]
+    members = [sample(model, cond, ids, ehs, num_views=4, steps=2, noise=noise[k * n : (k + 1) * n]) for k in range(3)]
     torch.testing.assert_close(out, torch.stack(members).mean(0), atol=1e-5, rtol=1e-5)
     with pytest.raises(ValueError, match="noise must have shape"):
         sample(model, cond, ids, ehs, num_views=4, ensemble=2, noise=noise)
@@ -162,8 +191,16 @@ def test_terminal_input_zero_makes_the_terminal_prediction_deterministic():
     assert not torch.equal(vx[4:], vy[4:])  # t = 500 still reads its noisy latent
 
     zero_snr = make_train_scheduler(rescale_zero_snr=True, timestep_spacing="trailing").config
-    run = lambda seed, **kw: sample(model, cond, ids, ehs, num_views=4, scheduler_config=zero_snr,
-                                    generator=torch.Generator().manual_seed(seed), **kw)
+    run = lambda seed, **kw: sample(
+        model,
+        cond,
+        ids,
+        ehs,
+        num_views=4,
+        scheduler_config=zero_snr,
+        generator=torch.Generator().manual_seed(seed),
+        **kw,
+    )
     single = run(0, mode="single_step")
     torch.testing.assert_close(run(1, mode="single_step"), single, atol=0, rtol=0)
     with pytest.warns(UserWarning, match="repeats one prediction"):
@@ -176,6 +213,7 @@ def test_terminal_input_zero_needs_zero_snr():
     from pydantic import ValidationError
 
     from pilight.params import ScheduleParams
+
     assert ScheduleParams(rescale_zero_snr=True, terminal_input="zero").terminal_input == "zero"
     with pytest.raises(ValidationError, match="terminal_input 'zero' needs schedule.rescale_zero_snr"):
         ScheduleParams(rescale_zero_snr=False, terminal_input="zero")
@@ -207,8 +245,10 @@ class _OracleV(torch.nn.Module):
         return (a.sqrt() * eps - (1 - a).sqrt() * x0).float()
 
 
-@pytest.mark.parametrize("zero_snr,spacing,terminal_zero", [(True, "trailing", False), (True, "leading", False),
-                                                          (False, "trailing", False), (True, "trailing", True)])
+@pytest.mark.parametrize(
+    "zero_snr,spacing,terminal_zero",
+    [(True, "trailing", False), (True, "leading", False), (False, "trailing", False), (True, "trailing", True)],
+)
 @pytest.mark.parametrize("steps", [1, 4, 25])
 def test_ddim_with_the_exact_v_recovers_x0(zero_snr, spacing, terminal_zero, steps):
     # The loop itself (scheduler config, timestep order, v -> x0 inside DDIMScheduler) must be
@@ -221,10 +261,28 @@ def test_ddim_with_the_exact_v_recovers_x0(zero_snr, spacing, terminal_zero, ste
     oracle = _OracleV(x0, scheduler.alphas_cumprod)
     oracle.terminal_zero = terminal_zero  # the sampler steps from the real x_T, so this stays exact
     cond, ids, ehs, _ = _inputs(2, DOMAINS)
-    out = sample(oracle, cond, ids, ehs, num_views=DOMAINS, steps=steps, timestep_spacing=spacing,
-                 generator=torch.Generator().manual_seed(0), scheduler_config=config, ensemble=2)
+    out = sample(
+        oracle,
+        cond,
+        ids,
+        ehs,
+        num_views=DOMAINS,
+        steps=steps,
+        timestep_spacing=spacing,
+        generator=torch.Generator().manual_seed(0),
+        scheduler_config=config,
+        ensemble=2,
+    )
     torch.testing.assert_close(out, x0, atol=1e-4, rtol=0)
     if zero_snr:
-        one = sample(oracle, cond, ids, ehs, num_views=DOMAINS, mode="single_step", scheduler_config=config,
-                     generator=torch.Generator().manual_seed(0))
+        one = sample(
+            oracle,
+            cond,
+            ids,
+            ehs,
+            num_views=DOMAINS,
+            mode="single_step",
+            scheduler_config=config,
+            generator=torch.Generator().manual_seed(0),
+        )
         torch.testing.assert_close(one, x0, atol=1e-4, rtol=0)

@@ -6,9 +6,16 @@ from diffusers import UNet2DConditionModel
 
 from pilight.diffusion.unet import PAPER_UNET_SPEC, UNetSpec, build_unet, load_pretrained_unet
 
-TINY = UNetSpec(sample_size=8, block_out_channels=(32, 32), layers_per_block=1, attention_head_dim=4,
-                cross_attention_dim=16, norm_num_groups=8,
-                down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"), up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"))
+TINY = UNetSpec(
+    sample_size=8,
+    block_out_channels=(32, 32),
+    layers_per_block=1,
+    attention_head_dim=4,
+    cross_attention_dim=16,
+    norm_num_groups=8,
+    down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"),
+    up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"),
+)
 
 
 def test_build_unet_domain_embedding():
@@ -39,10 +46,18 @@ def test_default_and_paper_specs():
 @pytest.fixture()
 def pretrained_dir(tmp_path):
     torch.manual_seed(0)
-    unet = UNet2DConditionModel(sample_size=8, in_channels=4, out_channels=4, block_out_channels=(32, 32),
-                                layers_per_block=1, norm_num_groups=8, cross_attention_dim=16, attention_head_dim=4,
-                                down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"),
-                                up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"))
+    unet = UNet2DConditionModel(
+        sample_size=8,
+        in_channels=4,
+        out_channels=4,
+        block_out_channels=(32, 32),
+        layers_per_block=1,
+        norm_num_groups=8,
+        cross_attention_dim=16,
+        attention_head_dim=4,
+        down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"),
+        up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"),
+    )
     path = tmp_path / "tiny-unet"
     unet.save_pretrained(path)
     return path
@@ -74,8 +89,10 @@ def test_load_pretrained_zero_init_is_exactly_the_pretrained_model(pretrained_di
     again = UNet2DConditionModel.from_pretrained(tmp_path / "adapted").eval()
     unet.eval()
     with torch.no_grad():
-        torch.testing.assert_close(again(torch.cat([latent, cond], 1), t, ehs, class_labels=labels).sample,
-                                   unet(torch.cat([latent, cond], 1), t, ehs, class_labels=labels).sample)
+        torch.testing.assert_close(
+            again(torch.cat([latent, cond], 1), t, ehs, class_labels=labels).sample,
+            unet(torch.cat([latent, cond], 1), t, ehs, class_labels=labels).sample,
+        )
 
 
 def test_load_pretrained_errors(pretrained_dir, tmp_path):

@@ -8,16 +8,29 @@ import numpy as np
 import pytest
 import torch
 
-from pilight.eval.light_following import (PROBE_LIGHTS, ChangeR2, cross_light, direction_from_angles, direction_score,
-                                          linearity, lr_asymmetry, probe_balls, probe_batch, probe_key, probe_scores,
-                                          select_probes, sides_visible)
+from pilight.eval.light_following import (
+    PROBE_LIGHTS,
+    ChangeR2,
+    cross_light,
+    direction_from_angles,
+    direction_score,
+    linearity,
+    lr_asymmetry,
+    probe_balls,
+    probe_batch,
+    probe_key,
+    probe_scores,
+    select_probes,
+    sides_visible,
+)
 from pilight.physics.calculated import diffuse_calculated, specular_calculated
 from pilight.physics.shading import ball_from_direction
 
 
 def _sphere_normals(size=32):
-    y, x = torch.meshgrid(1 - (torch.arange(size) + 0.5) * 2 / size, (torch.arange(size) + 0.5) * 2 / size - 1,
-                          indexing="ij")
+    y, x = torch.meshgrid(
+        1 - (torch.arange(size) + 0.5) * 2 / size, (torch.arange(size) + 0.5) * 2 / size - 1, indexing="ij"
+    )
     r2 = x * x + y * y
     inside = (r2 < 0.8).float()
     n = torch.stack([x, y, (1 - r2).clamp_min(0).sqrt()]) * inside
@@ -76,9 +89,13 @@ def test_probes_are_distinct_input_images_of_cross_light_pairs_with_both_sides_v
     flat = torch.zeros_like(n)
     flat[:, 2] = 1
     meta = lambda light: json.dumps({"scene": "s", "view": 0, "light": light})
-    batch = {"key": ["a", "b", "c", "d"], "meta_a": [meta(0), meta(0), meta(1), meta(1)],
-             "meta_b": [meta(0), meta(1), meta(0), meta(0)],
-             "normal": torch.cat([n, n, flat, n]), "mask": mask.expand(4, -1, -1, -1)}
+    batch = {
+        "key": ["a", "b", "c", "d"],
+        "meta_a": [meta(0), meta(0), meta(1), meta(1)],
+        "meta_b": [meta(0), meta(1), meta(0), meta(0)],
+        "normal": torch.cat([n, n, flat, n]),
+        "mask": mask.expand(4, -1, -1, -1),
+    }
     assert sides_visible(batch["normal"], batch["mask"]).tolist() == [True, True, False, True]
     probes = select_probes([batch], 5)
     assert [p["key"] for p in probes] == [["b"], ["d"]]  # a: identity pair; c: faces the camera only
@@ -89,7 +106,7 @@ def test_specular_lookup_is_zero_for_a_lambertian_ball_and_scaled_by_metal_fresn
     lamb = ball_from_direction([0, 0, 1], size=32)
     zeros = torch.zeros_like(mask)
     assert specular_calculated(lamb, lamb, n, mask, torch.full_like(n, 0.5), zeros).abs().max() == 0
-    gray = lamb + 0.1 * lamb ** 4  # a highlight where the ball faces the light
+    gray = lamb + 0.1 * lamb**4  # a highlight where the ball faces the light
     s_diel = specular_calculated(gray, lamb, n, mask, torch.full_like(n, 0.5), zeros)
     s_metal = specular_calculated(gray, lamb, n, mask, torch.full_like(n, 0.5), torch.ones_like(mask))
     assert s_diel.max() > 0
@@ -99,11 +116,18 @@ def test_specular_lookup_is_zero_for_a_lambertian_ball_and_scaled_by_metal_fresn
 def _probe(scene: str = "s", light: int = 0, size: int = 16) -> dict:
     n, mask = _sphere_normals(size)
     meta = json.dumps({"scene": scene, "view": 0, "light": light})
-    return {"key": [f"{scene}_v00_l{light:02d}_to_l01"], "meta_a": [meta], "meta_b": [meta],
-            "normal": n, "mask": mask, "albedo": torch.full((1, 3, size, size), 0.5) * mask,
-            "metallic": torch.zeros(1, 1, size, size), "image_a": torch.rand(1, 3, size, size),
-            "ball_b": ball_from_direction([0.2, 0.6, 0.7], intensity=2.0, size=8),
-            "ball_lambertian_b": ball_from_direction([0.2, 0.6, 0.7], intensity=1.5, size=8)}
+    return {
+        "key": [f"{scene}_v00_l{light:02d}_to_l01"],
+        "meta_a": [meta],
+        "meta_b": [meta],
+        "normal": n,
+        "mask": mask,
+        "albedo": torch.full((1, 3, size, size), 0.5) * mask,
+        "metallic": torch.zeros(1, 1, size, size),
+        "image_a": torch.rand(1, 3, size, size),
+        "ball_b": ball_from_direction([0.2, 0.6, 0.7], intensity=2.0, size=8),
+        "ball_lambertian_b": ball_from_direction([0.2, 0.6, 0.7], intensity=1.5, size=8),
+    }
 
 
 def test_probe_batch_holds_the_image_under_each_probe_light_with_matching_twins():
@@ -113,7 +137,9 @@ def test_probe_batch_holds_the_image_under_each_probe_light_with_matching_twins(
     i = {n: k for k, n in enumerate(PROBE_LIGHTS)}
     torch.testing.assert_close(batch["ball_b"][i["target_x2"]], 2 * probe["ball_b"][0])
     torch.testing.assert_close(batch["ball_lambertian_b"][i["target_x2"]], 2 * probe["ball_lambertian_b"][0])
-    torch.testing.assert_close(batch["ball_lambertian_b"][i["left"]], batch["ball_b"][i["left"]])  # analytic: no highlight
+    torch.testing.assert_close(
+        batch["ball_lambertian_b"][i["left"]], batch["ball_b"][i["left"]]
+    )  # analytic: no highlight
     torch.testing.assert_close(batch["image_a"][3], probe["image_a"][0])
 
 
@@ -130,7 +156,9 @@ def _relit_by(shade, probes):
 
 def test_probe_scores_physics_follows_the_light_and_copying_does_not():
     probes = [_probe("s1"), _probe("s2")]
-    physics = _relit_by(lambda b: b["albedo"] * diffuse_calculated(b["ball_b"], b["normal"], b["mask"], b["metallic"]), probes)
+    physics = _relit_by(
+        lambda b: b["albedo"] * diffuse_calculated(b["ball_b"], b["normal"], b["mask"], b["metallic"]), probes
+    )
     scores = probe_scores(physics, probes)
     assert scores["probes"] == 2 and scores["direction"] == 1.0
     assert scores["linearity"] == pytest.approx(2.0, rel=1e-5)

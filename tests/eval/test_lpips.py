@@ -15,12 +15,18 @@ from pilight.eval.lpips import BACKBONES, TORCHVISION_NAME, load_lpips
 # torchvision.models.alexnet() state dict: features (written out independently of pilight's
 # implementation, so a layout mistake there shows up here) plus the classifier, which must be ignored.
 ALEXNET_SHAPES = {
-    "features.0.weight": (64, 3, 11, 11), "features.0.bias": (64,),
-    "features.3.weight": (192, 64, 5, 5), "features.3.bias": (192,),
-    "features.6.weight": (384, 192, 3, 3), "features.6.bias": (384,),
-    "features.8.weight": (256, 384, 3, 3), "features.8.bias": (256,),
-    "features.10.weight": (256, 256, 3, 3), "features.10.bias": (256,),
-    "classifier.1.weight": (8, 9216), "classifier.1.bias": (8,),  # (4096, 9216) in torchvision; shrunk, ignored
+    "features.0.weight": (64, 3, 11, 11),
+    "features.0.bias": (64,),
+    "features.3.weight": (192, 64, 5, 5),
+    "features.3.bias": (192,),
+    "features.6.weight": (384, 192, 3, 3),
+    "features.6.bias": (384,),
+    "features.8.weight": (256, 384, 3, 3),
+    "features.8.bias": (256,),
+    "features.10.weight": (256, 256, 3, 3),
+    "features.10.bias": (256,),
+    "classifier.1.weight": (8, 9216),
+    "classifier.1.bias": (8,),  # (4096, 9216) in torchvision; shrunk, ignored
 }
 
 

@@ -9,8 +9,15 @@ import pytest
 import torch
 
 from pilight.eval.intrinsics import table1
-from pilight.eval.metrics import (angular_errors, masked_mae, masked_psnr, normal_metrics, psnr_from_mse,
-                                  psnr_per_image, ssim_per_image)
+from pilight.eval.metrics import (
+    angular_errors,
+    masked_mae,
+    masked_psnr,
+    normal_metrics,
+    psnr_from_mse,
+    psnr_per_image,
+    ssim_per_image,
+)
 
 
 def test_psnr_of_known_noise():
@@ -55,8 +62,12 @@ def test_mae_and_empty_masks():
 
 def test_table1_has_each_domain_and_the_average():
     gen = torch.Generator().manual_seed(3)
-    gt = {"albedo": torch.rand(2, 3, 32, 32, generator=gen), "normal": torch.rand(2, 3, 32, 32, generator=gen) * 2 - 1,
-          "roughness": torch.rand(2, 1, 32, 32, generator=gen), "metallic": torch.rand(2, 1, 32, 32, generator=gen)}
+    gt = {
+        "albedo": torch.rand(2, 3, 32, 32, generator=gen),
+        "normal": torch.rand(2, 3, 32, 32, generator=gen) * 2 - 1,
+        "roughness": torch.rand(2, 1, 32, 32, generator=gen),
+        "metallic": torch.rand(2, 1, 32, 32, generator=gen),
+    }
     mask = torch.ones(2, 1, 32, 32)
     same = table1(gt, gt, mask)
     assert set(same) == {"albedo", "normal", "roughness", "metallic", "average"}

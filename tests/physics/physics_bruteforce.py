@@ -24,7 +24,7 @@ def irradiance(normals, radiance_fn, h=64, w=128, chunk=4096):
     L = radiance_fn(d) * dw[:, None]
     out = []
     for s in range(0, len(normals), chunk):
-        c = np.clip(normals[s:s + chunk] @ d.T, 0.0, None)
+        c = np.clip(normals[s : s + chunk] @ d.T, 0.0, None)
         out.append(c @ L / np.pi)
     return np.concatenate(out, 0)
 
@@ -34,7 +34,7 @@ def ball_pixel_normals(size):
     x = (np.arange(size) + 0.5) * 2 / size - 1
     y = 1 - (np.arange(size) + 0.5) * 2 / size
     Y, X = np.meshgrid(y, x, indexing="ij")
-    r2 = X ** 2 + Y ** 2
+    r2 = X**2 + Y**2
     inside = r2 < 1
     n = np.stack([X, Y, np.sqrt(np.clip(1 - r2, 0, None))], -1) * inside[..., None]
     return n, inside

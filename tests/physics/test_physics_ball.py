@@ -5,9 +5,10 @@ import math
 import numpy as np
 import pytest
 import torch
-from hypothesis import given, settings, strategies as st
-
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from physics_bruteforce import ball_pixel_normals, irradiance, smooth_env
+
 from pilight.physics import ball_from_direction, ball_from_hdri, ball_from_light, ball_normals, hdri_directions
 
 
@@ -37,8 +38,9 @@ def test_ball_from_direction_analytic(l, intensity, ambient):
 
 
 def test_ball_from_direction_batched_colour():
-    ball = ball_from_direction(torch.tensor([[0, 0, 1.0], [1.0, 0, 0]]),
-                               intensity=torch.tensor([[1.0, 2.0, 3.0], [1.0, 1.0, 1.0]]), size=16)
+    ball = ball_from_direction(
+        torch.tensor([[0, 0, 1.0], [1.0, 0, 0]]), intensity=torch.tensor([[1.0, 2.0, 3.0], [1.0, 1.0, 1.0]]), size=16
+    )
     assert ball.shape == (2, 3, 16, 16)
     centre = ball[0, :, 7:9, 7:9].mean((1, 2))
     torch.testing.assert_close(centre / centre[0], torch.tensor([1.0, 2.0, 3.0]), atol=1e-5, rtol=0)

@@ -46,29 +46,64 @@ LIGHT_DIR = np.array([4.0, -3.0, 2.0])  # world; camera at -y looking +y: camera
 FAR = 100.0
 LIGHTS = {
     "hdri": {"points": [], "hdri": {"name": "forest", "strength": 1.0, "rotation_deg": 30.0}, "ambient": 0.02},
-    "point": {"points": [{"location": list(LIGHT_DIR / np.linalg.norm(LIGHT_DIR) * FAR),
-                          "power": 1000.0 * FAR ** 2 / float(LIGHT_DIR @ LIGHT_DIR), "radius": 0.1}],
-              "hdri": None, "ambient": 0.02},
+    "point": {
+        "points": [
+            {
+                "location": list(LIGHT_DIR / np.linalg.norm(LIGHT_DIR) * FAR),
+                "power": 1000.0 * FAR**2 / float(LIGHT_DIR @ LIGHT_DIR),
+                "radius": 0.1,
+            }
+        ],
+        "hdri": None,
+        "ambient": 0.02,
+    },
 }
 NAMES = list(LIGHTS)
 
 
 def _params() -> RenderParams:
-    return RenderParams.model_validate(dict(
-        resolution=48, scenes=dict(train=1, val=0, test=0), views_per_scene=1, lights_per_view=len(LIGHTS),
-        cycles=dict(samples=256, adaptive_threshold=0.0, adaptive_min_samples=0, world_map_resolution=1024),
-        ball_resolution=64, ball_samples=256))
+    return RenderParams.model_validate(
+        dict(
+            resolution=48,
+            scenes=dict(train=1, val=0, test=0),
+            views_per_scene=1,
+            lights_per_view=len(LIGHTS),
+            cycles=dict(samples=256, adaptive_threshold=0.0, adaptive_min_samples=0, world_map_resolution=1024),
+            ball_resolution=64,
+            ball_samples=256,
+        )
+    )
 
 
 def _spec() -> dict:
-    mat = {"type": "principled", "base_color": {"const": [0.8, 0.8, 0.8]}, "roughness": {"const": 0.5},
-           "metallic": {"const": 0.0}}
-    obj = {"shape": "sphere", "location": [0.0, 0.0, 0.0], "rotation_deg": [0, 0, 0], "scale": 1.0,
-           "modifiers": [], "material": mat}
-    return {"id": SID, "split": "train", "index": 0, "kind": "object", "seed": 0, "cycles_seed": 7,
-            "objects": [obj], "assets": [], "backdrop": None, "target": [0.0, 0.0, 0.0],
-            "views": [{"location": [0.0, -5.0, 0.0], "target": [0.0, 0.0, 0.0], "lens_mm": 50.0}],
-            "lights": [[LIGHTS[n] for n in NAMES]]}
+    mat = {
+        "type": "principled",
+        "base_color": {"const": [0.8, 0.8, 0.8]},
+        "roughness": {"const": 0.5},
+        "metallic": {"const": 0.0},
+    }
+    obj = {
+        "shape": "sphere",
+        "location": [0.0, 0.0, 0.0],
+        "rotation_deg": [0, 0, 0],
+        "scale": 1.0,
+        "modifiers": [],
+        "material": mat,
+    }
+    return {
+        "id": SID,
+        "split": "train",
+        "index": 0,
+        "kind": "object",
+        "seed": 0,
+        "cycles_seed": 7,
+        "objects": [obj],
+        "assets": [],
+        "backdrop": None,
+        "target": [0.0, 0.0, 0.0],
+        "views": [{"location": [0.0, -5.0, 0.0], "target": [0.0, 0.0, 0.0], "lens_mm": 50.0}],
+        "lights": [[LIGHTS[n] for n in NAMES]],
+    }
 
 
 @pytest.fixture(scope="module")
@@ -84,8 +119,11 @@ def rendered(tmp_path_factory):
     raw = dataset.render_view(handles, spec, 0, root, tmp, lambertian=True, verify=True)
     normal = read_exr(layout.map_path(root, SID, 0, "normal"))
     mask = read_exr(layout.map_path(root, SID, 0, "mask"))[..., 0] > 0.5
-    balls = {(li, kind): read_exr(layout.map_path(root, SID, 0, kind, li))
-             for li in range(len(NAMES)) for kind in ("ball", "ball_lambertian")}
+    balls = {
+        (li, kind): read_exr(layout.map_path(root, SID, 0, kind, li))
+        for li in range(len(NAMES))
+        for kind in ("ball", "ball_lambertian")
+    }
     return raw, normal, mask, balls
 
 
@@ -151,8 +189,8 @@ def test_flipping_normal_x_flips_the_lit_side(rendered):
     li, inner = NAMES.index("point"), _erode(mask)
     w = mask.shape[1]
     left, right = inner.copy(), inner.copy()
-    left[:, w // 2:] = False
-    right[:, :w // 2] = False
+    left[:, w // 2 :] = False
+    right[:, : w // 2] = False
     ref = _reference(raw, li).mean(-1)
     calc = _d_calc(balls[li, "ball_lambertian"], normal).mean(-1)
     flipped = _d_calc(balls[li, "ball_lambertian"], normal, flip_x=True).mean(-1)

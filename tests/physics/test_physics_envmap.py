@@ -16,9 +16,10 @@ import math
 import numpy as np
 import pytest
 import torch
-from hypothesis import given, settings, strategies as st
-
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from physics_bruteforce import ball_from_radiance, ball_pixel_normals, irradiance, smooth_env
+
 from pilight.physics import ENV_H, ENV_W, ball_normals, ball_to_envmap, diffuse_shading, envmap_directions
 
 SIZE = 256
@@ -64,7 +65,7 @@ def test_smooth_env_roundtrip(seed):
     err = np.abs(_lookup(env, n) - ref).max(1) / ref.max()
     print(f"smooth env {seed}: max rel err n_z>=0.2 {err[n[:, 2] >= 0.2].max():.4f}, all {err.max():.4f}")
     assert err[n[:, 2] >= 0.2].max() < 0.015
-    assert np.sqrt((err ** 2).mean()) < 0.01
+    assert np.sqrt((err**2).mean()) < 0.01
     assert err.max() < 0.08
 
 

@@ -2,11 +2,19 @@
 
 import pytest
 import torch
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from pilight.physics import (Dinov2Features, PooledRGBFeatures, compose, diffuse_shading_loss,
-                             make_feature_extractor, physical_shading_loss, physics_loss,
-                             reconstruction_loss)
+from pilight.physics import (
+    Dinov2Features,
+    PooledRGBFeatures,
+    compose,
+    diffuse_shading_loss,
+    make_feature_extractor,
+    physical_shading_loss,
+    physics_loss,
+    reconstruction_loss,
+)
 
 
 def test_diffuse_shading_loss_is_masked_mse():
@@ -40,8 +48,7 @@ def test_physics_loss_weighting():
     t = torch.tensor([0, 999])
     out = physics_loss(t, l, 0 * l, 0 * l, (2.0, 1.0, 1.0), t_min=1)
     torch.testing.assert_close(out, torch.tensor((2 * 1.0 / 1 + 2 * 2.0 / 999) / 2))
-    torch.testing.assert_close(physics_loss(torch.tensor([999, 999]), l, l, l, (1, 2, 3)),
-                               (6 * l / 999).mean())
+    torch.testing.assert_close(physics_loss(torch.tensor([999, 999]), l, l, l, (1, 2, 3)), (6 * l / 999).mean())
     with pytest.raises(ValueError):
         physics_loss(0, l, l, l, (1, 1, 1), t_min=0)
     # bf16 losses: weights still exact in fp32
@@ -50,13 +57,19 @@ def test_physics_loss_weighting():
 
 
 @settings(max_examples=20, deadline=None)
-@given(t=st.integers(0, 999), t_min=st.floats(0.5, 10))
+@given(t=st.integers(0, 998), t_min=st.floats(0.5, 10))
 def test_physics_loss_finite_and_monotone(t, t_min):
+    """The weight is 1 / max(t, t_min): finite at t = 0, and never larger at a noisier step (strictly
+    smaller once past the floor)."""
     l = torch.tensor([0.3], requires_grad=True)
     out = physics_loss(torch.tensor([t]), l, l, l, (1, 1, 1), t_min)
     out.backward()
     assert torch.isfinite(out) and torch.isfinite(l.grad).all()
-    assert out.item() <= 0.9 / t_min + 1e-6
+    assert out.item() == pytest.approx(0.9 / max(t, t_min), rel=1e-6)
+    later = physics_loss(torch.tensor([t + 1]), l, l, l, (1, 1, 1), t_min)
+    assert later <= out
+    if t + 1 > t_min:
+        assert later < out
 
 
 def test_gradcheck_losses():
@@ -64,14 +77,15 @@ def test_gradcheck_losses():
     r = lambda *s: torch.rand(*s, generator=g, dtype=torch.float64, requires_grad=True)
     mask = (torch.rand(2, 1, 4, 4, generator=g) > 0.3).double()
     assert torch.autograd.gradcheck(lambda a, b: diffuse_shading_loss(a, b, mask), (r(2, 3, 4, 4), r(2, 3, 4, 4)))
-    assert torch.autograd.gradcheck(lambda i, a, d, s: physical_shading_loss(i, a, d, s, mask),
-                                    (r(2, 3, 4, 4), r(2, 3, 4, 4), r(2, 3, 4, 4), r(2, 3, 4, 4)))
+    assert torch.autograd.gradcheck(
+        lambda i, a, d, s: physical_shading_loss(i, a, d, s, mask),
+        (r(2, 3, 4, 4), r(2, 3, 4, 4), r(2, 3, 4, 4), r(2, 3, 4, 4)),
+    )
     inp = torch.rand(2, 3, 16, 16, generator=g, dtype=torch.float64)
     ext = PooledRGBFeatures(4)
     assert torch.autograd.gradcheck(lambda x: reconstruction_loss(x, inp, ext), (r(2, 3, 16, 16),))
     t = torch.tensor([3, 500])
-    assert torch.autograd.gradcheck(lambda a, b, c: physics_loss(t, a, b, c, (0.5, 1.0, 2.0)),
-                                    (r(2), r(2), r(2)))
+    assert torch.autograd.gradcheck(lambda a, b, c: physics_loss(t, a, b, c, (0.5, 1.0, 2.0)), (r(2), r(2), r(2)))
 
 
 def test_pooled_rgb_extractor():
@@ -97,8 +111,16 @@ def tiny_dinov2(tmp_path_factory):
     from transformers import Dinov2Config, Dinov2Model
 
     torch.manual_seed(0)
-    cfg = Dinov2Config(hidden_size=32, num_hidden_layers=2, num_attention_heads=2, intermediate_size=64,
-                       patch_size=4, image_size=32, hidden_dropout_prob=0.1, attention_probs_dropout_prob=0.1)
+    cfg = Dinov2Config(
+        hidden_size=32,
+        num_hidden_layers=2,
+        num_attention_heads=2,
+        intermediate_size=64,
+        patch_size=4,
+        image_size=32,
+        hidden_dropout_prob=0.1,
+        attention_probs_dropout_prob=0.1,
+    )
     path = tmp_path_factory.mktemp("dinov2_tiny")
     Dinov2Model(cfg).save_pretrained(path)
     return path

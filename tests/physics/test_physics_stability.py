@@ -4,10 +4,17 @@ import math
 
 import pytest
 import torch
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from pilight.physics import (ball_from_direction, ball_normals, ball_to_envmap, diffuse_shading,
-                             diffuse_shading_loss, normal_to_uv)
+from pilight.physics import (
+    ball_from_direction,
+    ball_normals,
+    ball_to_envmap,
+    diffuse_shading,
+    diffuse_shading_loss,
+    normal_to_uv,
+)
 
 
 def _env(intensity=2.0, ambient=0.3, l=(0.3, 0.5, 0.8), size=64, dtype=torch.float32):
@@ -17,8 +24,22 @@ def _env(intensity=2.0, ambient=0.3, l=(0.3, 0.5, 0.8), size=64, dtype=torch.flo
 def _extreme_normals():
     """Poles, silhouette (n_z = 0, incl. the u = +-0.5 seam), back seam (n_x = 0, n_z < 0), zeros."""
     s = 1 / math.sqrt(2)
-    n = torch.tensor([[0, 1, 0], [0, -1, 0], [1, 0, 0], [-1, 0, 0], [s, s, 0], [-s, -s, 0],
-                      [0, 0, -1], [0, s, -s], [0, 0, 0], [0, 0, 1], [1e-8, 1 - 1e-8, 0]], dtype=torch.float32)
+    n = torch.tensor(
+        [
+            [0, 1, 0],
+            [0, -1, 0],
+            [1, 0, 0],
+            [-1, 0, 0],
+            [s, s, 0],
+            [-s, -s, 0],
+            [0, 0, -1],
+            [0, s, -s],
+            [0, 0, 0],
+            [0, 0, 1],
+            [1e-8, 1 - 1e-8, 0],
+        ],
+        dtype=torch.float32,
+    )
     return n.T.reshape(1, 3, 1, -1).contiguous()
 
 

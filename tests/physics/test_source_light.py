@@ -10,8 +10,8 @@ from pilight.physics.source_light import SourceLightError, estimate_source_ball,
 
 def _sphere(h=48):
     y, x = torch.meshgrid(1 - 2 * (torch.arange(h) + 0.5) / h, 2 * (torch.arange(h) + 0.5) / h - 1, indexing="ij")
-    inside = (x ** 2 + y ** 2) < 0.97
-    n = torch.stack([x, y, (1 - x ** 2 - y ** 2).clamp_min(0).sqrt()]) * inside
+    inside = (x**2 + y**2) < 0.97
+    n = torch.stack([x, y, (1 - x**2 - y**2).clamp_min(0).sqrt()]) * inside
     return n[None], inside.float()[None, None]
 
 
@@ -61,5 +61,9 @@ def test_an_all_metal_image_is_fitted_on_all_its_pixels():
     albedo = torch.full((1, 3, 16, 16), 0.5) * mask
     coeffs = fit_diffuse_sh(albedo * 2.0, albedo, n, mask, metal)  # a constant light of shading 2
     shade = torch.einsum("bck,bkhw->bchw", coeffs, sh_basis(n)) * mask
-    torch.testing.assert_close(shade[mask.expand_as(shade) > 0.5], torch.full_like(shade[mask.expand_as(shade) > 0.5], 2.0),
-                               atol=1e-3, rtol=1e-3)
+    torch.testing.assert_close(
+        shade[mask.expand_as(shade) > 0.5],
+        torch.full_like(shade[mask.expand_as(shade) > 0.5], 2.0),
+        atol=1e-3,
+        rtol=1e-3,
+    )

@@ -34,27 +34,39 @@ def test_closed_form_with_light_at_the_camera():
     """n = l = v = +z: D = 1/(pi alpha^2), V = 1/4, F = F0, so S = I F0 / (4 alpha^2) + a F0."""
     n = torch.tensor([0.0, 0.0, 1.0]).reshape(1, 3, 1, 1)
     r, f0 = 0.5, 0.04
-    s = ggx_specular(n, torch.full((1, 1, 1, 1), r), torch.full((1, 1, 1, 1), f0), torch.tensor([[0.0, 0.0, 1.0]]),
-                     torch.tensor([[3.0, 3.0, 3.0]]), torch.tensor([[0.2, 0.2, 0.2]]))
-    torch.testing.assert_close(s.flatten(), torch.full((3,), 3.0 * f0 / (4 * r ** 4) + 0.2 * f0))
+    s = ggx_specular(
+        n,
+        torch.full((1, 1, 1, 1), r),
+        torch.full((1, 1, 1, 1), f0),
+        torch.tensor([[0.0, 0.0, 1.0]]),
+        torch.tensor([[3.0, 3.0, 3.0]]),
+        torch.tensor([[0.2, 0.2, 0.2]]),
+    )
+    torch.testing.assert_close(s.flatten(), torch.full((3,), 3.0 * f0 / (4 * r**4) + 0.2 * f0))
 
 
 def _sphere(h=33):
     y, x = torch.meshgrid(1 - 2 * (torch.arange(h) + 0.5) / h, 2 * (torch.arange(h) + 0.5) / h - 1, indexing="ij")
-    inside = (x ** 2 + y ** 2) < 1
-    n = torch.stack([x, y, (1 - x ** 2 - y ** 2).clamp_min(0).sqrt()]) * inside
+    inside = (x**2 + y**2) < 1
+    n = torch.stack([x, y, (1 - x**2 - y**2).clamp_min(0).sqrt()]) * inside
     return n[None]
 
 
 def test_highlight_sits_at_the_half_vector_and_sharpens_with_smoothness():
     n = _sphere()
     l = _unit((0.6, 0.3, 0.7))
-    h = (l + torch.tensor([0.0, 0.0, 1.0]))
+    h = l + torch.tensor([0.0, 0.0, 1.0])
     h = h / h.norm()
     peaks = {}
     for r in (0.2, 0.6):
-        s = ggx_specular(n, torch.full((1, 1, 33, 33), r), torch.full((1, 1, 33, 33), 0.04), l[None],
-                         torch.ones(1, 3), torch.zeros(1, 3))[0, 0]
+        s = ggx_specular(
+            n,
+            torch.full((1, 1, 33, 33), r),
+            torch.full((1, 1, 33, 33), 0.04),
+            l[None],
+            torch.ones(1, 3),
+            torch.zeros(1, 3),
+        )[0, 0]
         at = divmod(int(s.argmax()), 33)
         assert float((n[0, :, at[0], at[1]] * h).sum()) > 0.99  # the brightest normal is the half vector
         peaks[r] = (float(s.max()), int((s > 0.5 * s.max()).sum()))

@@ -97,7 +97,7 @@ def test_exr_write_failure_names_the_output(tmp_path, monkeypatch):
             return False
 
         def write(self, name):
-            raise Exception(f"Cannot write image file \"{name}\". No space left on device.")
+            raise Exception(f'Cannot write image file "{name}". No space left on device.')
 
     monkeypatch.setattr(OpenEXR, "File", Full)
     target = tmp_path / "a.exr"

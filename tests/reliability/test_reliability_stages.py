@@ -15,10 +15,18 @@ from accelerate.state import AcceleratorState
 from pilight.data.shards import read_index
 from tests.stage_scripts import REPO, params_file, tiny_shards
 
-TINY = {"unet": {"block_out_channels": [8, 8], "layers_per_block": 1, "attention_head_dim": 4, "cross_attention_dim": 8},
-        "codec": {"kind": "pixel", "factor": 4},
-        "train": {"steps": 2, "batch_size": 2, "checkpoint_every": 1, "image_every": 100, "log_every": 1,
-                  "warmup_steps": 0}}
+TINY = {
+    "unet": {"block_out_channels": [8, 8], "layers_per_block": 1, "attention_head_dim": 4, "cross_attention_dim": 8},
+    "codec": {"kind": "pixel", "factor": 4},
+    "train": {
+        "steps": 2,
+        "batch_size": 2,
+        "checkpoint_every": 1,
+        "image_every": 100,
+        "log_every": 1,
+        "warmup_steps": 0,
+    },
+}
 
 
 def _main(script: str):
@@ -43,8 +51,18 @@ def setup(tmp_path: Path):
 
 
 def _train_args(tmp_path: Path, shards: Path, params: Path) -> list[str]:
-    return ["--params", str(params), "--shards", str(shards), "--out", str(tmp_path / "model"),
-            "--checkpoints", str(tmp_path / "ckpt"), "--live", str(tmp_path / "live")]
+    return [
+        "--params",
+        str(params),
+        "--shards",
+        str(shards),
+        "--out",
+        str(tmp_path / "model"),
+        "--checkpoints",
+        str(tmp_path / "ckpt"),
+        "--live",
+        str(tmp_path / "live"),
+    ]
 
 
 def test_cut_shard_fails_training_by_name(setup, tmp_path, capsys):
@@ -74,9 +92,21 @@ def test_bad_run_json_fails_training_with_a_message(setup, tmp_path, capsys):
 def test_truncated_model_fails_inference_with_a_message(setup, tmp_path, capsys):
     shards, params = setup
     (tmp_path / "model").mkdir()
-    (tmp_path / "model" / "model.safetensors").write_bytes(b"\x10\x00\x00\x00\x00\x00\x00\x00{\"a\":")
-    rc = _main("infer_intrinsics")(["--params", str(params), "--shards", str(shards), "--model", str(tmp_path / "model"),
-                                    "--out", str(tmp_path / "pred"), "--metrics", str(tmp_path / "m.json")])
+    (tmp_path / "model" / "model.safetensors").write_bytes(b'\x10\x00\x00\x00\x00\x00\x00\x00{"a":')
+    rc = _main("infer_intrinsics")(
+        [
+            "--params",
+            str(params),
+            "--shards",
+            str(shards),
+            "--model",
+            str(tmp_path / "model"),
+            "--out",
+            str(tmp_path / "pred"),
+            "--metrics",
+            str(tmp_path / "m.json"),
+        ]
+    )
     err = capsys.readouterr().err
     assert rc == 1 and f"{tmp_path / 'model' / 'model.safetensors'}: unreadable safetensors file" in err, err
     assert not (tmp_path / "pred").exists()
@@ -86,15 +116,43 @@ def _infer_test_split(setup, tmp_path):
     shards, _ = setup
     params = params_file(tmp_path, {"intrinsics": TINY, "infer_intrinsics": {"steps": 1, "splits": ["test"]}})
     assert _main("train_intrinsics")(_train_args(tmp_path, shards, params)) == 0
-    assert _main("infer_intrinsics")(["--params", str(params), "--shards", str(shards), "--model", str(tmp_path / "model"),
-                                      "--out", str(tmp_path / "pred"), "--metrics", str(tmp_path / "m.json")]) == 0
+    assert (
+        _main("infer_intrinsics")(
+            [
+                "--params",
+                str(params),
+                "--shards",
+                str(shards),
+                "--model",
+                str(tmp_path / "model"),
+                "--out",
+                str(tmp_path / "pred"),
+                "--metrics",
+                str(tmp_path / "m.json"),
+            ]
+        )
+        == 0
+    )
     return shards, params
 
 
 def _evaluate(tmp_path, shards, params):
-    return _main("evaluate")(["--params", str(params), "--shards", str(shards), "--pred", str(tmp_path / "pred"),
-                              "--relit", str(tmp_path / "no_relit"), "--metrics", str(tmp_path / "eval.json"),
-                              "--reports", str(tmp_path / "reports")])
+    return _main("evaluate")(
+        [
+            "--params",
+            str(params),
+            "--shards",
+            str(shards),
+            "--pred",
+            str(tmp_path / "pred"),
+            "--relit",
+            str(tmp_path / "no_relit"),
+            "--metrics",
+            str(tmp_path / "eval.json"),
+            "--reports",
+            str(tmp_path / "reports"),
+        ]
+    )
 
 
 def test_evaluate_fails_on_a_missing_prediction_and_removes_stale_reports(setup, tmp_path, capsys, monkeypatch):

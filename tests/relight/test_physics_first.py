@@ -15,23 +15,31 @@ from pilight.relight import physics_first as pf
 from pilight.train.relight import RelightTask
 
 H = 16
-TINY = {"unet": {"block_out_channels": [32, 32], "layers_per_block": 1, "attention_head_dim": 8, "cross_attention_dim": 32},
-        "codec": {"kind": "pixel", "factor": 4}, "conditions": "gt", "relit_target": "gain",
-        "relit_resolution": "cell", "physics_first": True, "d_calc_condition": []}
+TINY = {
+    "unet": {"block_out_channels": [32, 32], "layers_per_block": 1, "attention_head_dim": 8, "cross_attention_dim": 32},
+    "codec": {"kind": "pixel", "factor": 4},
+    "conditions": "gt",
+    "relit_target": "gain",
+    "relit_resolution": "cell",
+    "physics_first": True,
+    "d_calc_condition": [],
+}
 ONE_STEP = SamplingParams(mode="single_step", cfg_scale=1.0)
 
 
 def _sphere(b: int = 2, h: int = H) -> tuple[torch.Tensor, torch.Tensor]:
     """Normals of a sphere filling the frame, and its mask (B x 3|1 x h x h)."""
     y, x = torch.meshgrid(1 - 2 * (torch.arange(h) + 0.5) / h, 2 * (torch.arange(h) + 0.5) / h - 1, indexing="ij")
-    inside = (x ** 2 + y ** 2) < 0.95
-    z = (1 - x ** 2 - y ** 2).clamp_min(0).sqrt()
+    inside = (x**2 + y**2) < 0.95
+    z = (1 - x**2 - y**2).clamp_min(0).sqrt()
     n = torch.stack([x, y, z]) * inside
     return n.expand(b, 3, h, h).clone(), inside.float().expand(b, 1, h, h).clone()
 
 
 def _ball(direction, intensity=2.0, ambient=0.1, b=2):
-    return ball_from_direction(torch.tensor(direction, dtype=torch.float32), intensity, ambient, size=16).expand(b, -1, -1, -1)
+    return ball_from_direction(torch.tensor(direction, dtype=torch.float32), intensity, ambient, size=16).expand(
+        b, -1, -1, -1
+    )
 
 
 def _pair(b: int = 2) -> dict:
@@ -43,10 +51,22 @@ def _pair(b: int = 2) -> dict:
     ball_a, ball_b = _ball([-0.6, 0.5, 0.6], b=b), _ball([0.7, 0.3, 0.6], intensity=3.0, b=b)
     image = lambda ball: albedo * diffuse_calculated(ball, n, mask, metallic)
     meta = lambda light: [json.dumps({"scene": f"s{i}", "view": 0, "light": light}) for i in range(b)]
-    return {"image_a": image(ball_a), "image_b": image(ball_b), "ball_a": ball_a, "ball_b": ball_b,
-            "albedo": albedo, "normal": n, "mask": mask, "metallic": metallic, "roughness": torch.full((b, 1, H, H), 0.5),
-            "diffuse_b": diffuse_calculated(ball_b, n, mask, metallic), "specular_b": torch.zeros(b, 3, H, H),
-            "key": [f"s{i}_v00_l00_to_l01" for i in range(b)], "meta_a": meta(0), "meta_b": meta(1)}
+    return {
+        "image_a": image(ball_a),
+        "image_b": image(ball_b),
+        "ball_a": ball_a,
+        "ball_b": ball_b,
+        "albedo": albedo,
+        "normal": n,
+        "mask": mask,
+        "metallic": metallic,
+        "roughness": torch.full((b, 1, H, H), 0.5),
+        "diffuse_b": diffuse_calculated(ball_b, n, mask, metallic),
+        "specular_b": torch.zeros(b, 3, H, H),
+        "key": [f"s{i}_v00_l00_to_l01" for i in range(b)],
+        "meta_a": meta(0),
+        "meta_b": meta(1),
+    }
 
 
 def _task(tmp_path, **kw) -> RelightTask:
@@ -71,8 +91,12 @@ def test_effective_albedo_recovers_the_albedo_of_a_physics_render():
     intr = {k: b[k] for k in ("albedo", "normal", "metallic")}
     anc = pf.anchors(b["image_a"], intr, b["mask"], b["ball_b"], None, ball_a=b["ball_a"])
     lit = (b["mask"] > 0.5) & (diffuse_calculated(b["ball_a"], b["normal"], b["mask"], b["metallic"]) > 0.5)
-    torch.testing.assert_close(anc.albedo.expand_as(lit)[lit.expand_as(anc.albedo)],
-                               b["albedo"][lit.expand_as(b["albedo"])], atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(
+        anc.albedo.expand_as(lit)[lit.expand_as(anc.albedo)],
+        b["albedo"][lit.expand_as(b["albedo"])],
+        atol=1e-5,
+        rtol=1e-5,
+    )
     relit = pf.compose_relit(anc, torch.zeros_like(b["image_a"]), torch.zeros_like(b["image_a"]))["relit"]
     m = b["mask"].expand_as(relit) > 0.5
     torch.testing.assert_close(relit[m], b["image_b"][m], atol=1e-4, rtol=1e-4)
@@ -122,8 +146,11 @@ def test_loss_trains_every_branch_and_is_finite(tmp_path):
     assert torch.isfinite(loss)
     assert logs["l_ps"] == pytest.approx(0.0, abs=1e-6)  # the identity holds by construction (A_x in L_PS)
     loss.backward()
-    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in task.trainable().parameters()
-               if p.requires_grad and p.grad is not None)
+    assert all(
+        p.grad is not None and torch.isfinite(p.grad).all()
+        for p in task.trainable().parameters()
+        if p.requires_grad and p.grad is not None
+    )
 
 
 def test_rendered_source_light_needs_the_input_ball(tmp_path):

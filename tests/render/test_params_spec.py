@@ -19,15 +19,18 @@ def _load(tmp_path, render: dict):
     return load_section("render", p)
 
 
-@pytest.mark.parametrize("render, needle", [
-    ({"scenes": {"train": -2, "val": 0, "test": 0}}, "render.scenes.train = -2"),
-    ({"resolution": 130}, "render.resolution = 130: Value error, must be divisible by 8"),
-    ({"hdri": {"names": ["forest", "moon"], "test_holdout": []}}, "unknown bundled HDRI name(s) ['moon']"),
-    ({"light": {"hdri_probability": -0.1}}, "render.light.hdri_probability = -0.1"),
-    ({"assets": ["missing/chair.glb"]}, "asset 'missing/chair.glb' does not exist"),
-    ({"hdri": {"test_holdout": ["forest"], "names": ["city"]}}, "must also be listed in names"),
-    ({"colour": 1}, "render.colour"),
-])
+@pytest.mark.parametrize(
+    "render, needle",
+    [
+        ({"scenes": {"train": -2, "val": 0, "test": 0}}, "render.scenes.train = -2"),
+        ({"resolution": 130}, "render.resolution = 130: Value error, must be divisible by 8"),
+        ({"hdri": {"names": ["forest", "moon"], "test_holdout": []}}, "unknown bundled HDRI name(s) ['moon']"),
+        ({"light": {"hdri_probability": -0.1}}, "render.light.hdri_probability = -0.1"),
+        ({"assets": ["missing/chair.glb"]}, "asset 'missing/chair.glb' does not exist"),
+        ({"hdri": {"test_holdout": ["forest"], "names": ["city"]}}, "must also be listed in names"),
+        ({"colour": 1}, "render.colour"),
+    ],
+)
 def test_bad_params_name_key_value_and_rule(tmp_path, render, needle):
     with pytest.raises(ParamsError) as err:
         _load(tmp_path, render)

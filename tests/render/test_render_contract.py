@@ -19,9 +19,14 @@ def two_spheres(tmp_path_factory, bpy_render):
     """A constant Principled sphere (left) and a glass sphere (right), lit from the camera's right."""
     root = tmp_path_factory.mktemp("two_spheres")
     spec = controlled_spec(
-        [sphere(principled(RED, 0.4, 0.3), (-0.9, 0, 0), 0.8),
-         sphere({"type": "glass", "color": [0.9, 0.9, 0.9], "roughness": 0.0, "ior": 1.45}, (0.9, 0, 0), 0.8)],
-        [point_light((4.0, -3.0, 1.0)), point_light((-4.0, -3.0, 1.0), hdri={"name": "forest", "strength": 0.5, "rotation_deg": 30.0})],
+        [
+            sphere(principled(RED, 0.4, 0.3), (-0.9, 0, 0), 0.8),
+            sphere({"type": "glass", "color": [0.9, 0.9, 0.9], "roughness": 0.0, "ior": 1.45}, (0.9, 0, 0), 0.8),
+        ],
+        [
+            point_light((4.0, -3.0, 1.0)),
+            point_light((-4.0, -3.0, 1.0), hdri={"name": "forest", "strength": 0.5, "rotation_deg": 30.0}),
+        ],
     )
     raw, _ = bpy_render(spec, root)
     return root, raw
@@ -56,9 +61,12 @@ def test_specular_is_the_sum_of_the_non_diffuse_passes(two_spheres, light):
     """S is not a residual by fiat: it matches glossy + transmission + emission + background."""
     root, raw = two_spheres
     p = raw[light]
-    rest = (p["Glossy Color"] * (p["Glossy Direct"] + p["Glossy Indirect"])
-            + p["Transmission Color"] * (p["Transmission Direct"] + p["Transmission Indirect"])
-            + p["Emission"] + p["Environment"])
+    rest = (
+        p["Glossy Color"] * (p["Glossy Direct"] + p["Glossy Indirect"])
+        + p["Transmission Color"] * (p["Transmission Direct"] + p["Transmission Indirect"])
+        + p["Emission"]
+        + p["Environment"]
+    )
     s = _maps(root, light)["specular"]
     np.testing.assert_allclose(s, rest, rtol=1e-4, atol=1e-5)
 
@@ -190,9 +198,13 @@ def test_shared_pattern_drives_colour_roughness_and_metal_together(tmp_path, bpy
     anti-aliasing included) is one blend w of both: metallic (0 -> 1) gives w, and the albedo
     and roughness must then be the same blend."""
     a, b = (0.6, 0.1, 0.1), (0.1, 0.2, 0.7)
-    material = {"type": "principled", "pattern": {"texture": texture, "scale": 4.0, "edge": 0.05},
-                "base_color": {"values": [list(a), list(b)]}, "roughness": {"values": [0.2, 0.8]},
-                "metallic": {"values": [0.0, 1.0]}}
+    material = {
+        "type": "principled",
+        "pattern": {"texture": texture, "scale": 4.0, "edge": 0.05},
+        "base_color": {"values": [list(a), list(b)]},
+        "roughness": {"values": [0.2, 0.8]},
+        "metallic": {"values": [0.0, 1.0]},
+    }
     bpy_render(controlled_spec([sphere(material, scale=1.2)], [point_light((4.0, -3.0, 1.0))]), tmp_path)
     view = _maps(tmp_path)
     inner = _interior(view["mask"])
@@ -202,14 +214,17 @@ def test_shared_pattern_drives_colour_roughness_and_metal_together(tmp_path, bpy
     np.testing.assert_allclose(view["roughness"][inner][:, :1], 0.2 + 0.6 * w, atol=2e-3)
 
 
-def test_camera_backdrop_is_the_same_behind_the_scene_for_every_light_while_the_hdri_still_lights_it(tmp_path, bpy_render):
+def test_camera_backdrop_is_the_same_behind_the_scene_for_every_light_while_the_hdri_still_lights_it(
+    tmp_path, bpy_render
+):
     """render.camera_backdrop: camera rays that miss the scene see the constant, whatever the light;
     the lighting HDRI still lights the sphere (its image differs between a dim and a bright HDRI)."""
     hdri = lambda strength: {"name": "forest", "strength": strength, "rotation_deg": 0.0}
     lights = [{"points": [], "hdri": hdri(0.3), "ambient": 0.02}, {"points": [], "hdri": hdri(1.0), "ambient": 0.05}]
     spec = controlled_spec([sphere(principled(RED, 0.5, 0.0), scale=0.6)], lights)
-    bpy_render(spec, tmp_path, tiny_params(camera_backdrop=0.1, cycles=dict(samples=16, adaptive_threshold=0.0)),
-               verify=False)
+    bpy_render(
+        spec, tmp_path, tiny_params(camera_backdrop=0.1, cycles=dict(samples=16, adaptive_threshold=0.0)), verify=False
+    )
     view = _maps(tmp_path)
     a, b = _maps(tmp_path, 0)["image"], _maps(tmp_path, 1)["image"]
     mask = view["mask"].reshape(a.shape[:2])

@@ -13,11 +13,16 @@ from pathlib import Path
 import pytest
 import yaml
 
+from tests.stage_scripts import stage_env
+
 ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.slow
 
 TINY_RENDER = {
-    "resolution": 32, "scenes": {"train": 2, "val": 0, "test": 1}, "views_per_scene": 1, "lights_per_view": 2,
+    "resolution": 32,
+    "scenes": {"train": 2, "val": 0, "test": 1},
+    "views_per_scene": 1,
+    "lights_per_view": 2,
     "cycles": {"samples": 8, "adaptive_min_samples": 4},
 }
 
@@ -28,17 +33,30 @@ def write_params(path: Path, **render_overrides) -> Path:
 
 
 def stage_args(params: Path, out: Path) -> list[str]:
-    return [sys.executable, str(ROOT / "stages" / "render.py"), "--params", str(params), "--out", str(out),
-            "--log", str(out.parent / f"{out.name}.blender.log")]
+    return [
+        sys.executable,
+        str(ROOT / "stages" / "render.py"),
+        "--params",
+        str(params),
+        "--out",
+        str(out),
+        "--log",
+        str(out.parent / f"{out.name}.blender.log"),
+    ]
 
 
 def run_stage(params: Path, out: Path, **kw) -> subprocess.CompletedProcess:
-    return subprocess.run(stage_args(params, out), capture_output=True, text=True, cwd=ROOT, timeout=600, **kw)
+    return subprocess.run(
+        stage_args(params, out), capture_output=True, text=True, cwd=ROOT, timeout=600, env=stage_env(), **kw
+    )
 
 
 def tree_digest(root: Path) -> dict[str, str]:
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
 
 
 @pytest.fixture(scope="module")
@@ -72,7 +90,14 @@ def test_held_out_hdris_only_in_test(reference):
 def test_killed_render_resumes_to_identical_files(reference, tmp_path):
     params, first = reference
     out = tmp_path / "renders"
-    proc = subprocess.Popen(stage_args(params, out), cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    proc = subprocess.Popen(
+        stage_args(params, out),
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+        env=stage_env(),
+    )
     deadline = time.time() + 300
     while time.time() < deadline and not list(out.rglob(".done")):
         time.sleep(0.05)
@@ -93,7 +118,11 @@ def test_rerun_with_other_params_keeps_no_view_of_the_old_ones(reference, tmp_pa
     params, first = reference
     out = tmp_path / "renders"
     shutil.copytree(first, out)
-    new = write_params(tmp_path / "new.yaml", scenes={"train": 1, "val": 0, "test": 1}, cycles={"samples": 4, "adaptive_min_samples": 2})
+    new = write_params(
+        tmp_path / "new.yaml",
+        scenes={"train": 1, "val": 0, "test": 1},
+        cycles={"samples": 4, "adaptive_min_samples": 2},
+    )
     assert run_stage(new, out).returncode == 0
     clean = tmp_path / "clean"
     assert run_stage(new, clean).returncode == 0
@@ -106,14 +135,17 @@ def test_rerun_with_other_params_keeps_no_view_of_the_old_ones(reference, tmp_pa
     assert log.read_text().count("Saved:") == saved
 
 
-@pytest.mark.parametrize("override, needle", [
-    ({"resolution": 100}, "render.resolution = 100"),
-    ({"scenes": {"train": -1, "val": 0, "test": 1}}, "render.scenes.train = -1"),
-    ({"hdri": {"names": ["forest", "mars"], "test_holdout": ["forest"]}}, "mars"),
-    ({"light": {"hdri_probability": 1.5}}, "render.light.hdri_probability = 1.5"),
-    ({"assets": ["/nonexistent/chair.glb"]}, "/nonexistent/chair.glb"),
-    ({"assets": [str(ROOT / "pyproject.toml")]}, "unsupported type"),
-])
+@pytest.mark.parametrize(
+    "override, needle",
+    [
+        ({"resolution": 100}, "render.resolution = 100"),
+        ({"scenes": {"train": -1, "val": 0, "test": 1}}, "render.scenes.train = -1"),
+        ({"hdri": {"names": ["forest", "mars"], "test_holdout": ["forest"]}}, "mars"),
+        ({"light": {"hdri_probability": 1.5}}, "render.light.hdri_probability = 1.5"),
+        ({"assets": ["/nonexistent/chair.glb"]}, "/nonexistent/chair.glb"),
+        ({"assets": [str(ROOT / "pyproject.toml")]}, "unsupported type"),
+    ],
+)
 def test_bad_params_fail_before_blender(tmp_path, override, needle):
     r = run_stage(write_params(tmp_path / "p.yaml", **override), tmp_path / "out")
     assert r.returncode == 2
@@ -134,8 +166,14 @@ def test_unreadable_hdri_is_an_error(tmp_path):
     hdris.mkdir()
     (hdris / "good.exr").write_bytes(b"not an exr at all" * 10)
     (hdris / "bad.exr").write_bytes(b"\x76\x2f\x31\x01 truncated")
-    r = run_stage(write_params(tmp_path / "p.yaml", hdri={"dir": str(hdris), "names": ["good", "bad"], "test_holdout": ["bad"]},
-                               light={"hdri_probability": 1.0}), tmp_path / "out")
+    r = run_stage(
+        write_params(
+            tmp_path / "p.yaml",
+            hdri={"dir": str(hdris), "names": ["good", "bad"], "test_holdout": ["bad"]},
+            light={"hdri_probability": 1.0},
+        ),
+        tmp_path / "out",
+    )
     assert r.returncode == 1 and "unreadable" in r.stderr and str(hdris) in r.stderr, r.stderr
 
 
@@ -171,8 +209,16 @@ def test_user_asset_is_rendered_with_its_material(tmp_path, suffix):
     asset = tmp_path / f"cube{suffix}"
     r = subprocess.run([sys.executable, "-c", EXPORT_ASSET, str(asset)], capture_output=True, text=True, timeout=300)
     assert asset.is_file(), r.stderr
-    r = run_stage(write_params(tmp_path / "p.yaml", assets=[str(asset)], assets_only=True,
-                               scenes={"train": 1, "val": 0, "test": 0}, resolution=48), tmp_path / "out")
+    r = run_stage(
+        write_params(
+            tmp_path / "p.yaml",
+            assets=[str(asset)],
+            assets_only=True,
+            scenes={"train": 1, "val": 0, "test": 0},
+            resolution=48,
+        ),
+        tmp_path / "out",
+    )
     assert r.returncode == 0, r.stderr
     assert not Path(str(asset) + ".ran").exists(), "the .blend's script must not run"
     view = tmp_path / "out" / "train_0000" / "v00"
@@ -208,9 +254,13 @@ def test_dask_render_survives_killed_workers_with_the_in_process_bytes(reference
     done. Dask restarts them and resubmits their partitions; the dataset equals the in-process render."""
     _, first = reference
     address, client = dask_cluster
-    params = write_params(tmp_path / "params.yaml", cluster={"executor": "dask", "address": address, "scenes_per_task": 1})
+    params = write_params(
+        tmp_path / "params.yaml", cluster={"executor": "dask", "address": address, "scenes_per_task": 1}
+    )
     out = tmp_path / "renders"
-    proc = subprocess.Popen(stage_args(params, out), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        stage_args(params, out), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=stage_env()
+    )
     deadline = time.time() + 300
     while time.time() < deadline and not list(out.rglob(".done")) and proc.poll() is None:
         time.sleep(0.05)
@@ -239,7 +289,9 @@ def test_dask_render_names_a_failing_scene_and_keeps_the_other_partitions(refere
     assert "1 of 3 render partition(s) failed" in r.stderr and "scene train_0001" in r.stderr, r.stderr[-3000:]
     assert not (out / "manifest.json").exists()
     kept = {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file() and "train_0001" not in str(p)}
-    assert any(p.name == ".done" for p in kept) and len({p.parts[len(out.parts)] for p in kept if p.name == ".done"}) == 2
+    assert (
+        any(p.name == ".done" for p in kept) and len({p.parts[len(out.parts)] for p in kept if p.name == ".done"}) == 2
+    )
     (out / "train_0001").unlink()
     r = run_stage(params, out)
     assert r.returncode == 0, r.stderr[-3000:]

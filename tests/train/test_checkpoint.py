@@ -32,8 +32,16 @@ def _train_a_bit(model, opt, sched, n=3):
 def _save(d: Path, step: int, model, opt, sched, keep: int = 3) -> Path:
     gen = torch.Generator().manual_seed(5)
     rng = {"rank0.generator": gen.get_state(), "rank0.torch_cpu": torch.get_rng_state()}
-    return ckpt.save_checkpoint(d, step, model=model, optimizer=opt, scheduler=sched, rng=rng,
-                                progress={"epoch": 2, "batches_in_epoch": 3}, keep=keep)
+    return ckpt.save_checkpoint(
+        d,
+        step,
+        model=model,
+        optimizer=opt,
+        scheduler=sched,
+        rng=rng,
+        progress={"epoch": 2, "batches_in_epoch": 3},
+        keep=keep,
+    )
 
 
 def test_roundtrip_restores_everything(tmp_path: Path):
@@ -74,7 +82,7 @@ def test_files_are_plain_safetensors(tmp_path: Path):
             continue
         raw = f.read_bytes()
         (n,) = struct.unpack("<Q", raw[:8])  # safetensors: u64 header length, then a JSON header
-        json.loads(raw[8:8 + n])
+        json.loads(raw[8 : 8 + n])
         assert not raw.startswith(b"\x80") and not raw.startswith(b"PK")  # not a pickle, not a torch zip
         with safe_open(str(f), framework="pt") as fh:
             list(fh.keys())

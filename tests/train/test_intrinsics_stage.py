@@ -13,9 +13,11 @@ from pilight.params import DOMAINS, IntrinsicsParams, SamplingParams
 from pilight.train.intrinsics import IntrinsicsTask, domain_targets, latent_mask, masked_latent_mse, targets_to_maps
 from tests.stage_scripts import params_file, run_stage, tiny_shards
 
-TINY = {"unet": {"block_out_channels": [32, 32], "layers_per_block": 1, "attention_head_dim": 8, "cross_attention_dim": 32},
-        "codec": {"kind": "pixel", "factor": 4},
-        "train": {"steps": 4, "batch_size": 2, "checkpoint_every": 2, "image_every": 2, "log_every": 1, "warmup_steps": 0}}
+TINY = {
+    "unet": {"block_out_channels": [32, 32], "layers_per_block": 1, "attention_head_dim": 8, "cross_attention_dim": 32},
+    "codec": {"kind": "pixel", "factor": 4},
+    "train": {"steps": 4, "batch_size": 2, "checkpoint_every": 2, "image_every": 2, "log_every": 1, "warmup_steps": 0},
+}
 
 
 @pytest.fixture(scope="module")
@@ -85,8 +87,9 @@ def test_predict_a_subset_of_domains(shards):
 
 
 def _params(tmp_path, **intrinsics) -> Path:
-    return params_file(tmp_path, {"intrinsics": {**TINY, **intrinsics},
-                                  "infer_intrinsics": {"steps": 2, "splits": ["train", "test"]}})
+    return params_file(
+        tmp_path, {"intrinsics": {**TINY, **intrinsics}, "infer_intrinsics": {"steps": 2, "splits": ["train", "test"]}}
+    )
 
 
 _run = run_stage
@@ -95,18 +98,51 @@ _run = run_stage
 @pytest.mark.slow
 def test_train_infer_evaluate_scripts(shards, tmp_path):
     params = _params(tmp_path)
-    r = _run("train_intrinsics.py", "--params", params, "--shards", shards, "--out", tmp_path / "model",
-             "--checkpoints", tmp_path / "ckpt", "--live", tmp_path / "live")
+    r = _run(
+        "train_intrinsics.py",
+        "--params",
+        params,
+        "--shards",
+        shards,
+        "--out",
+        tmp_path / "model",
+        "--checkpoints",
+        tmp_path / "ckpt",
+        "--live",
+        tmp_path / "live",
+    )
     assert r.returncode == 0, r.stderr
     assert json.loads((tmp_path / "live" / "metrics.json").read_text())["steps"] == 4
     assert (tmp_path / "live" / "plots" / "images" / "intrinsics_grid.png").is_file()
-    r = _run("infer_intrinsics.py", "--params", params, "--shards", shards, "--model", tmp_path / "model",
-             "--out", tmp_path / "pred", "--metrics", tmp_path / "infer.json")
+    r = _run(
+        "infer_intrinsics.py",
+        "--params",
+        params,
+        "--shards",
+        shards,
+        "--model",
+        tmp_path / "model",
+        "--out",
+        tmp_path / "pred",
+        "--metrics",
+        tmp_path / "infer.json",
+    )
     assert r.returncode == 0, r.stderr
     index = json.loads((tmp_path / "pred" / "index.json").read_text())
     assert index["splits"]["train"]["samples"] == 9 and index["parts"]["conditioning"] == "learned-embedding"
-    r = _run("evaluate.py", "--params", params, "--shards", shards, "--pred", tmp_path / "pred",
-             "--metrics", tmp_path / "eval.json", "--reports", tmp_path / "reports")
+    r = _run(
+        "evaluate.py",
+        "--params",
+        params,
+        "--shards",
+        shards,
+        "--pred",
+        tmp_path / "pred",
+        "--metrics",
+        tmp_path / "eval.json",
+        "--reports",
+        tmp_path / "reports",
+    )
     assert r.returncode == 0, r.stderr
     result = json.loads((tmp_path / "eval.json").read_text())["intrinsics"]
     assert set(result["model"]) >= {"albedo_psnr", "normal_mean_deg", "roughness_mae", "metallic_mae"}
@@ -120,28 +156,66 @@ def test_two_training_runs_give_the_same_bytes(shards, tmp_path, script):
     change its output). The model is initialised from the global RNG, so it must be seeded first."""
     params = params_file(tmp_path, {"intrinsics": TINY, "relight": {**TINY, "conditions": "gt"}})
     for run in ("a", "b"):
-        r = _run(script, "--params", params, "--shards", shards, "--out", tmp_path / run / "model",
-                 "--checkpoints", tmp_path / run / "ckpt", "--live", tmp_path / run / "live")
+        r = _run(
+            script,
+            "--params",
+            params,
+            "--shards",
+            shards,
+            "--out",
+            tmp_path / run / "model",
+            "--checkpoints",
+            tmp_path / run / "ckpt",
+            "--live",
+            tmp_path / run / "live",
+        )
         assert r.returncode == 0, r.stderr
     weights = [(tmp_path / run / "model" / "model.safetensors").read_bytes() for run in ("a", "b")]
     assert weights[0] == weights[1]
 
 
-@pytest.mark.parametrize("change, needle, code", [
-    ({"unet": {"init": "pretrained", "path": "/no/such/unet"}}, "unet.path '/no/such/unet' does not exist", 2),
-    ({"codec": {"kind": "vae", "path": None}}, "codec.path is not set", 2),
-    ({"codec": {"kind": "pixel", "factor": 3}}, "not divisible by the codec factor 3", 1),
-])
+@pytest.mark.parametrize(
+    "change, needle, code",
+    [
+        ({"unet": {"init": "pretrained", "path": "/no/such/unet"}}, "unet.path '/no/such/unet' does not exist", 2),
+        ({"codec": {"kind": "vae", "path": None}}, "codec.path is not set", 2),
+        ({"codec": {"kind": "pixel", "factor": 3}}, "not divisible by the codec factor 3", 1),
+    ],
+)
 def test_bad_model_input_fails_before_training(shards, tmp_path, change, needle, code):
-    r = _run("train_intrinsics.py", "--params", _params(tmp_path, **change), "--shards", shards,
-             "--out", tmp_path / "model", "--checkpoints", tmp_path / "ckpt", "--live", tmp_path / "live")
+    r = _run(
+        "train_intrinsics.py",
+        "--params",
+        _params(tmp_path, **change),
+        "--shards",
+        shards,
+        "--out",
+        tmp_path / "model",
+        "--checkpoints",
+        tmp_path / "ckpt",
+        "--live",
+        tmp_path / "live",
+    )
     assert r.returncode == code and needle in r.stderr, r.stderr
     assert not (tmp_path / "ckpt").exists()
 
 
 def test_empty_shard_list_is_an_error(tmp_path):
     (tmp_path / "shards").mkdir()
-    (tmp_path / "shards" / "index.json").write_text(json.dumps({"splits": {"train": {"shards": [], "samples": 0}}, "sizes": {}}))
-    r = _run("train_intrinsics.py", "--params", _params(tmp_path), "--shards", tmp_path / "shards",
-             "--out", tmp_path / "model", "--checkpoints", tmp_path / "ckpt", "--live", tmp_path / "live")
+    (tmp_path / "shards" / "index.json").write_text(
+        json.dumps({"splits": {"train": {"shards": [], "samples": 0}}, "sizes": {}})
+    )
+    r = _run(
+        "train_intrinsics.py",
+        "--params",
+        _params(tmp_path),
+        "--shards",
+        tmp_path / "shards",
+        "--out",
+        tmp_path / "model",
+        "--checkpoints",
+        tmp_path / "ckpt",
+        "--live",
+        tmp_path / "live",
+    )
     assert r.returncode == 1 and "train split has no shards" in r.stderr, r.stderr

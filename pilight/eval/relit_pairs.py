@@ -1,0 +1,124 @@
+"""What the relight stage writes to data/relit, as generators for write_predictions: the held-out pairs
+relit by the trained stage-2 model (DDIM or single-step, CFG; the relit image, D and S of a pair in
+one batched pass), keyed by the pair key `<scene>_vNN_lAA_to_lBB`, and the light-following probes.
+
+Splits of data/relit: `<split>` (every pair, stage-1 predictions as conditions when the prediction
+folder holds the split: no ground-truth intrinsics at test time, else ground truth), `<split>_gt`
+(the cross-light pairs again with ground-truth conditions, when the first used predictions) and
+`probes` (PROBE_IMAGES test images under the probe lights: pilight.eval.light_following). With
+relight.physics_first the outputs also hold "albedo", the A_x of I_relit = A_x D + S.
+
+``task`` is anything with ``predict(batch, sampling, generator, intrinsics)`` (pilight.train.relight's
+RelightTask); eval never imports pilight.train.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from pilight.data.shards import eval_dataset, make_loader
+from pilight.eval.light_following import PROBE_LIGHTS, PROBE_SPLIT, cross_light, probe_batch, probe_key, select_probes
+from pilight.relight.conditions import PRED_DOMAINS, choose_intrinsics
+
+PROBE_IMAGES = 12  # light-following probe images (the issue asks for at least 12)
+
+
+class RunStats:
+    """What the main pass measures: seconds and pairs, the physics-first identity residual
+    |I_relit - A_x D - S| against |I_relit| on the mask (float32 outputs), and the first batches
+    (the flipped-normal check reuses them)."""
+
+    def __init__(self, keep_batches: int):
+        self.pairs, self.seconds, self.identity_abs, self.identity_ref = 0, 0.0, 0.0, 0.0
+        self.keep_batches, self.first = keep_batches, []
+
+    def add(self, batch: dict, out: dict, seconds: float) -> None:
+        self.seconds += seconds
+        self.pairs += len(batch["key"])
+        if "albedo" in out:  # physics_first: the relit image is A_x D + S on the mask
+            m = batch["mask"].expand_as(out["relit"]) > 0.5
+            composed = out["albedo"] * out["diffuse"] + out["specular"]
+            self.identity_abs += float((out["relit"] - composed).abs()[m].sum())
+            self.identity_ref += float(out["relit"].abs()[m].sum())
+        if len(self.first) < self.keep_batches:
+            self.first.append(batch)
+
+    def identity_residual(self) -> float | None:
+        return self.identity_abs / self.identity_ref if self.identity_ref > 0 else None
+
+
+def relit_pairs(
+    task,
+    shards: Path,
+    split: str,
+    ip,
+    seed: int,
+    conditions: str,
+    preds: dict | None,
+    cross_only: bool = False,
+    stats: RunStats | None = None,
+):
+    """(key, {branch: H x W x C}, meta JSON) of every pair of ``split`` (only the cross-light ones with
+    ``cross_only``), conditioned on ``conditions`` ("pred": ``preds``, "gt": ground truth)."""
+    gen = torch.Generator().manual_seed(seed)
+    with tqdm(desc=f"relight {split} ({conditions} conditions)", unit="pair") as bar:
+        for batch in make_loader(eval_dataset(shards, split, "relight"), ip.batch_size):
+            if cross_only:
+                batch = cross_light(batch)
+                if batch is None:
+                    continue
+            B = len(batch["key"])
+            intr = choose_intrinsics(batch, torch.full((B,), conditions == "pred"), preds)
+            t0 = time.perf_counter()
+            out = task.predict(batch, ip, gen, intr)
+            if stats is not None:
+                stats.add(batch, out, time.perf_counter() - t0)
+            for i, key in enumerate(batch["key"]):
+                ma, mb = json.loads(batch["meta_a"][i]), json.loads(batch["meta_b"][i])
+                meta = json.dumps(
+                    {
+                        "scene": ma["scene"],
+                        "view": ma["view"],
+                        "light_a": ma["light"],
+                        "light_b": mb["light"],
+                        "conditions": conditions,
+                    },
+                    sort_keys=True,
+                )
+                yield key, {b: v[i].cpu().numpy().transpose(1, 2, 0) for b, v in out.items()}, meta
+            bar.update(B)
+
+
+def relit_probes(task, shards: Path, split: str, ip, seed: int, preds: dict | None):
+    """The light-following probes (pilight.eval.light_following): each probe image under the four
+    PROBE_LIGHTS, conditioned like the main pass."""
+    source = "pred" if preds is not None else "gt"
+    chosen = select_probes(make_loader(eval_dataset(shards, split, "relight"), 8), PROBE_IMAGES)
+    for probe in tqdm(chosen, desc="relight probes", unit="image"):
+        batch = probe_batch(probe)
+        intr = choose_intrinsics(batch, torch.full((len(PROBE_LIGHTS),), preds is not None), preds)
+        out = task.predict(batch, ip, torch.Generator().manual_seed(seed), intr)
+        for i, light in enumerate(PROBE_LIGHTS):
+            meta = json.dumps({"probe_light": light, "conditions": source}, sort_keys=True)
+            yield probe_key(probe, light), {"relit": out["relit"][i].cpu().numpy().transpose(1, 2, 0)}, meta
+
+
+def index_info(task, ip, split: str, source: str) -> dict:
+    """What data/relit's index records beside the splits: branches, sampling, conditions, the model's parts."""
+    return {
+        "branches": list(task.branches),
+        "sampling": ip.model_dump(mode="json"),
+        "conditions": source,
+        "condition_domains": list(PRED_DOMAINS),
+        "parts": task.describe(),
+        "splits_written": {
+            split: f"every pair, {source} conditions",
+            f"{split}_gt": "cross-light pairs, ground-truth conditions",
+            PROBE_SPLIT: "probe images under the light-following probe lights",
+        },
+    }

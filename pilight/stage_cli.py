@@ -1,0 +1,69 @@
+"""What every DVC stage script in stages/ does around its work, written once: the argument parser
+(``--params`` plus the stage's own options; the script's docstring is its --help), the params
+sections it reads, and the exit codes DVC and users see:
+
+* 0: done;
+* 2: bad params, found before anything heavy is imported (bpy and torch take seconds to load);
+* 1: bad data or a missing input (``DataError``, or what a stage lists with ``fails_on``), as one
+  line naming the file, never a traceback.
+
+A stage script is then its docstring, its options and a ``body(args, *sections)``:
+
+    def main(argv=None) -> int:
+        return run_stage("shard", __doc__, argv, ["base", "shard", "render"], options, body)
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+
+from pilight.data.schema import DataError
+from pilight.params import ParamsError, load_section
+
+
+class StageFailure(Exception):
+    """A failure the stage reports as one line and exit ``code`` (1; 2 for a params value that turns
+    out unusable once it is used, e.g. a weights folder that does not load)."""
+
+    def __init__(self, message: str, code: int = 1):
+        super().__init__(message)
+        self.code = code
+
+
+@contextmanager
+def fails_on(*errors: type[BaseException]) -> Iterator[None]:
+    """Inside the block, ``errors`` (the stage's own: RenderError, ModelError, OSError, ...) end the
+    stage with exit 1 and their message. The classes are named where they can happen, after the
+    stage imported its heavy modules."""
+    try:
+        yield
+    except errors as exc:
+        raise StageFailure(str(exc)) from exc
+
+
+def run_stage(
+    name: str,
+    doc: str,
+    argv: list[str] | None,
+    sections: Sequence[str],
+    options: Callable[[argparse.ArgumentParser], None],
+    body: Callable[..., int],
+) -> int:
+    """Parse ``argv``, load ``sections`` from --params, run ``body(args, *sections)``; the exit code."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--params", default="params.yaml")
+    options(ap)
+    args = ap.parse_args(argv)
+    try:
+        params = [load_section(s, args.params) for s in sections]
+    except ParamsError as exc:
+        print(f"{name}: {exc}", file=sys.stderr)
+        return 2
+    try:
+        return body(args, *params)
+    except (StageFailure, DataError) as exc:
+        print(f"{name}: {exc}", file=sys.stderr)
+        return exc.code if isinstance(exc, StageFailure) else 1
