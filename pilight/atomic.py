@@ -17,10 +17,11 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 
 def umask() -> int:
@@ -80,6 +81,17 @@ def folder_write_error(exc: BaseException, out: Path) -> BaseException:
         return exc
     prefix = os.path.join(os.fspath(Path(out).parent), f".{Path(out).name}.")
     return path_error(exc, out, lambda name: name.startswith(prefix))
+
+
+def abandon_folder(exc: BaseException, tmp: str | os.PathLike | None, out: Path) -> NoReturn:
+    """Inside ``except BaseException as exc`` of a folder write: remove the temporary ``tmp`` (when it
+    was made) and raise, naming ``out`` when the error is an OSError (folder_write_error)."""
+    if tmp is not None:
+        shutil.rmtree(tmp, ignore_errors=True)
+    err = folder_write_error(exc, out)  # a full disk names no file: say which output failed
+    if err is exc:
+        raise exc
+    raise err from exc
 
 
 def write_with(path: str | os.PathLike, write: Callable[[str], None]) -> Path:

@@ -86,12 +86,7 @@ def write_predictions(
             shutil.rmtree(out)
         os.replace(tmp, out)
     except BaseException as exc:
-        if tmp is not None:
-            shutil.rmtree(tmp, ignore_errors=True)
-        err = atomic.folder_write_error(exc, out)  # a full disk names no file: say which output failed
-        if err is exc:
-            raise
-        raise err from exc
+        atomic.abandon_folder(exc, tmp, out)
     return index
 
 

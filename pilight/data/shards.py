@@ -94,12 +94,7 @@ def write_shards(
         os.chmod(tmp, atomic.dir_mode())  # mkdtemp makes it 0700 whatever the umask
         _swap_into_place(tmp, out)
     except BaseException as exc:
-        if tmp is not None:
-            shutil.rmtree(tmp, ignore_errors=True)
-        err = atomic.folder_write_error(exc, out)  # a full disk names no file: say which output failed
-        if err is exc:
-            raise
-        raise err from exc
+        atomic.abandon_folder(exc, tmp, out)
     return index
 
 

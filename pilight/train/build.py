@@ -19,6 +19,7 @@ from pilight.diffusion.attention import set_cross_batch_attention
 from pilight.diffusion.codec import make_codec
 from pilight.diffusion.conditioning import make_conditioning, null_like
 from pilight.diffusion.model import DomainDiffusion
+from pilight.diffusion.sampler import sample
 from pilight.diffusion.schedule import make_train_scheduler
 from pilight.diffusion.unet import UNetSpec, build_unet, load_pretrained_unet
 from pilight.params import SamplingParams
@@ -52,6 +53,35 @@ class Stack:
 
     def null_condition(self, ehs: torch.Tensor) -> torch.Tensor:
         return null_like(ehs)
+
+    def sample(
+        self,
+        z_cond: torch.Tensor,
+        ids: torch.Tensor,
+        image: torch.Tensor,
+        num_views: int,
+        sp: SamplingParams,
+        generator: torch.Generator | None = None,
+    ) -> torch.Tensor:
+        """Clean latents (B * V, C, h, w) of the V = ``num_views`` views of B samples in one batched pass,
+        as ``sp`` says (steps, CFG against the null condition, ensemble); ``image``: the B condition images."""
+        drop = torch.zeros(image.shape[0], dtype=torch.bool, device=image.device)
+        ehs = self.encode_condition(image, drop).repeat_interleave(num_views, 0)
+        return sample(
+            self.model,
+            z_cond,
+            ids,
+            ehs,
+            num_views=num_views,
+            steps=sp.steps,
+            cfg_scale=sp.cfg_scale,
+            timestep_spacing=sp.timestep_spacing,
+            mode=sp.mode,
+            ensemble=sp.ensemble,
+            generator=generator,
+            null_hidden_states=self.null_condition(ehs),
+            scheduler_config=self.scheduler.config,
+        )
 
     def describe(self) -> dict[str, str]:
         """What each part is, for reports: substitutes are named, never silent."""

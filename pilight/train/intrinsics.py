@@ -19,7 +19,6 @@ import torch.nn.functional as F
 from pilight.data import schema
 from pilight.data.colour import linear_to_srgb, srgb_to_linear, to_uint8
 from pilight.data.shards import intrinsics_dataset, make_loader
-from pilight.diffusion.sampler import sample
 from pilight.diffusion.schedule import sample_timesteps
 from pilight.eval.grids import labelled_grid
 from pilight.params import DOMAINS, IntrinsicsParams, SamplingParams
@@ -123,22 +122,7 @@ class IntrinsicsTask:
         B, V = x.shape[0], len(domains)
         z_cond = s.codec.encode(x).repeat_interleave(V, 0)
         ids = torch.tensor([DOMAINS.index(d) for d in domains], device=dev).repeat(B)
-        ehs = s.encode_condition(x, torch.zeros(B, dtype=torch.bool, device=dev)).repeat_interleave(V, 0)
-        z0 = sample(
-            s.model,
-            z_cond,
-            ids,
-            ehs,
-            num_views=V,
-            steps=sp.steps,
-            cfg_scale=sp.cfg_scale,
-            timestep_spacing=sp.timestep_spacing,
-            mode=sp.mode,
-            ensemble=sp.ensemble,
-            generator=generator,
-            null_hidden_states=s.null_condition(ehs),
-            scheduler_config=s.scheduler.config,
-        )
+        z0 = s.sample(z_cond, ids, x, V, sp, generator)
         pred = s.codec.decode(z0).float().unflatten(0, (B, V))
         return targets_to_maps(pred, domains, self.p.albedo_space)
 

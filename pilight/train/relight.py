@@ -48,7 +48,6 @@ from pilight.data.colour import to_uint8
 from pilight.data.schema import DataError
 from pilight.data.shards import make_loader, relight_dataset
 from pilight.diffusion.codec import cell_mean, cell_smooth
-from pilight.diffusion.sampler import sample
 from pilight.diffusion.schedule import sample_timesteps, v_to_x0
 from pilight.eval.grids import labelled_grid
 from pilight.params import RelightParams, SamplingParams
@@ -341,22 +340,7 @@ class RelightTask:
         maps, anc = self._conditions(batch, intr, dev)
         z_cond = encode_conditions(s.codec, maps, self.layout, self.width)
         ids = torch.arange(V, device=dev).repeat(B)
-        ehs = s.encode_condition(maps["image"], torch.zeros(B, dtype=torch.bool, device=dev)).repeat_interleave(V, 0)
-        z0 = sample(
-            s.model,
-            z_cond,
-            ids,
-            ehs,
-            num_views=V,
-            steps=sp.steps,
-            cfg_scale=sp.cfg_scale,
-            timestep_spacing=sp.timestep_spacing,
-            mode=sp.mode,
-            ensemble=sp.ensemble,
-            generator=generator,
-            null_hidden_states=s.null_condition(ehs),
-            scheduler_config=s.scheduler.config,
-        )
+        z0 = s.sample(z_cond, ids, maps["image"], V, sp, generator)
         if anc is not None:
             out = self._physics_first_outputs(
                 s.codec.decode(z0).float().unflatten(0, (B, V)), anc, maps["image"], batch["mask"].to(dev)
