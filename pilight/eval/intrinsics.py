@@ -142,6 +142,17 @@ def evaluate_intrinsics(
     return out
 
 
+def intrinsics_report(
+    shard_dir: Path, pred_dir: Path, split: str = "test", lpips=None, lpips_note: str = "", grid_images: int = 0
+) -> tuple[dict, str, np.ndarray | None]:
+    """(metrics, markdown table, grid or None) of ``evaluate_intrinsics``, as the evaluate stage writes
+    them; the metrics say why LPIPS is what it is (``lpips_note``)."""
+    result = evaluate_intrinsics(shard_dir, pred_dir, split, lpips=lpips, grid_images=grid_images)
+    result["lpips_note"] = lpips_note
+    grid_image = result.pop("grid", None)
+    return result, markdown_table(result, split), grid_image
+
+
 def grid(image: torch.Tensor, gt: dict, pred: dict, mask: torch.Tensor, n: int) -> np.ndarray:
     """One row per image: input | (ground truth, prediction) for each predicted intrinsic, labelled."""
     from pilight.data.colour import to_uint8

@@ -14,6 +14,7 @@ Light-following (pilight.eval.light_following): change_r2 of every method on the
 the mask, over the cross-light pairs (copying scores 0, the ground truth 1).
 Light-following of the model with ground-truth conditions, and the probes' direction and
 linearity, come from the relit folder's `<split>_gt` and `probes` splits (``light_following``).
+The evaluate stage calls ``relight_report``: the split the relight stage wrote, or a skipped note.
 With physics_first, ``identity_residual_relative`` is sum |I_relit - A_x D - S| / sum |I_relit| on the
 mask, A_x being the albedo the model formed I_relit with (float16 EXRs: ~1e-3 at most).
 Also: the decomposition residual mean |I_relit - A D_pred - S_pred| (linear HDR, ground-truth A)
@@ -183,6 +184,21 @@ def evaluate_relight(
     if grid_rows:
         out["grid"] = labelled_grid(grid_rows, list(GRID_COLUMNS[: len(grid_rows[0])]))
     return out
+
+
+def relight_report(
+    shard_dir: Path, relit_dir: Path, lpips=None, lpips_note: str = "", grid_pairs: int = 0
+) -> tuple[dict, str | None, np.ndarray | None]:
+    """(metrics, markdown table, grid) of what the relight stage wrote to ``relit_dir``, on the split its
+    index records (``evaluate_relight``). Without ``relit_dir``/index.json (the relight stage has not run)
+    the metrics are {"skipped": why} and there is no table or grid, so evaluate still reports stage 1."""
+    index = Path(relit_dir) / "index.json"
+    if not index.is_file():
+        return {"skipped": f"{relit_dir}/index.json not found (run the relight stage)"}, None, None
+    split = json.loads(index.read_text()).get("sampling", {}).get("split", "test")
+    result = evaluate_relight(shard_dir, relit_dir, split, lpips=lpips, lpips_note=lpips_note, grid_pairs=grid_pairs)
+    grid = result.pop("grid", None)
+    return result, markdown_table(result, split), grid
 
 
 def light_following(shard_dir: Path, relit_dir: Path, split: str) -> dict:

@@ -1,6 +1,7 @@
 """What the relight stage writes to data/relit, as generators for write_predictions: the held-out pairs
 relit by the trained stage-2 model (DDIM or single-step, CFG; the relit image, D and S of a pair in
-one batched pass), keyed by the pair key `<scene>_vNN_lAA_to_lBB`, and the light-following probes.
+one batched pass), keyed by the pair key `<scene>_vNN_lAA_to_lBB`, and the light-following probes;
+``relight_split`` runs them all, writes data/relit and returns what the run measured.
 
 Splits of data/relit: `<split>` (every pair, stage-1 predictions as conditions when the prediction
 folder holds the split: no ground-truth intrinsics at test time, else ground truth), `<split>_gt`
@@ -8,8 +9,8 @@ folder holds the split: no ground-truth intrinsics at test time, else ground tru
 `probes` (PROBE_IMAGES test images under the probe lights: pilight.eval.light_following). With
 relight.physics_first the outputs also hold "albedo", the A_x of I_relit = A_x D + S.
 
-``task`` is anything with ``predict(batch, sampling, generator, intrinsics)`` (pilight.train.relight's
-RelightTask); eval never imports pilight.train.
+``task`` is anything with ``predict(batch, sampling, generator, intrinsics)``, ``branches`` and
+``describe()`` (pilight.train.relight's RelightTask); eval never imports pilight.train.
 """
 
 from __future__ import annotations
@@ -21,7 +22,9 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from pilight.data.predictions import write_predictions
 from pilight.data.shards import eval_dataset, make_loader
+from pilight.eval.flip_check import FLIP_CHECK_BATCHES, flip_check
 from pilight.eval.light_following import PROBE_LIGHTS, PROBE_SPLIT, cross_light, probe_batch, probe_key, select_probes
 from pilight.relight.conditions import PRED_DOMAINS, choose_intrinsics
 
@@ -121,4 +124,33 @@ def index_info(task, ip, split: str, source: str) -> dict:
             f"{split}_gt": "cross-light pairs, ground-truth conditions",
             PROBE_SPLIT: "probe images under the light-following probe lights",
         },
+    }
+
+
+def relight_split(
+    task, shards: Path, out: Path, split: str, ip, seed: int, preds: dict | None, check_flip: bool = True
+) -> dict:
+    """Relight ``split`` into ``out`` (data/relit: the splits above, conditioned on ``preds`` when given,
+    else on ground truth), then the flipped-normal check (pilight.eval.flip_check) on the first batches
+    when ``check_flip`` and the model has the diffuse branch. Returns metrics/relight.json: timings,
+    the identity residual and the flip check vary or are checks, so they stay out of ``out``, which is
+    byte-deterministic."""
+    source = "pred" if preds is not None else "gt"
+    stats = RunStats(FLIP_CHECK_BATCHES)
+    run = lambda conditions, **kw: relit_pairs(task, shards, split, ip, seed, conditions, preds, **kw)
+    jobs = {split: run(source, stats=stats)}
+    if source == "pred":
+        jobs[f"{split}_gt"] = run("gt", cross_only=True)
+    jobs[PROBE_SPLIT] = relit_probes(task, shards, split, ip, seed, preds)
+    out_index = write_predictions(out, jobs, index_info(task, ip, split, source))
+    flip = {"pairs": 0, "note": "needs the diffuse branch (relight.decomposition: true)"}
+    if check_flip and stats.first and "diffuse" in task.branches:
+        flip = flip_check(task, stats.first, ip, seed)
+    return {
+        "seconds_per_pair": stats.seconds / max(stats.pairs, 1),
+        "pairs": stats.pairs,
+        "conditions": source,
+        "identity_residual_relative": stats.identity_residual(),
+        "samples": out_index["splits"][split]["samples"],
+        "flip_check_d_pred": flip,
     }

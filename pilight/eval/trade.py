@@ -15,8 +15,8 @@ seed.  Seconds are wall-clock for the batched sampling calls only (no data loadi
 warm-up call.  A point is on the Pareto front when no other point is at least as fast and at
 least as accurate, and strictly better in one of the two.
 
-The trade stage (stages/trade.py) takes the images and pairs with ``first_n``, sweeps both stages
-with ``sweep_intrinsics`` / ``sweep_relight`` and writes everything with ``write_trade``.
+The trade stage (stages/trade.py) takes the images and pairs with ``sweep_samples``, sweeps both stages
+with ``sweep_both`` (``sweep_intrinsics`` / ``sweep_relight``) and writes everything with ``write_trade``.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from pilight import atomic
@@ -260,6 +261,42 @@ def sweep_relight(task, pairs: dict, intr: dict, ip, tp: TradeParams, seed: int,
     return rows
 
 
+def sweep_samples(shards: Path, pred_dir: Path, split: str, n: int) -> tuple[dict, dict, dict | None]:
+    """What both sweeps run on: the first ``n`` test images and the first ``n`` cross-light pairs of
+    ``split``, each stacked into one batch (DataError when either is empty), and the stage-1
+    predictions in ``pred_dir`` that condition the pairs (None: ground truth conditions them)."""
+    from pilight.data.schema import DataError
+    from pilight.data.shards import eval_dataset, make_loader
+    from pilight.relight.conditions import optional_predictions
+
+    imgs = first_n(make_loader(eval_dataset(shards, "test", "intrinsics"), 8), n)
+    pairs = first_n(make_loader(eval_dataset(shards, split, "relight"), 8), n, is_cross_light)
+    if not imgs or not pairs:
+        raise DataError(f"{shards}: no test images or no cross-light {split} pairs to sweep")
+    return imgs, pairs, optional_predictions(shards, pred_dir, split, "trade")
+
+
+def sweep_both(
+    t1, imgs: dict, ip1, t2, pairs: dict, ip2, preds: dict | None, tp: TradeParams, seed: int
+) -> tuple[list[dict], list[dict]]:
+    """Stage 1's and stage 2's points (``sweep_intrinsics`` with ``t1``, ``sweep_relight`` with ``t2``)
+    under one progress bar that names the setting being sampled; stage 2 conditioned on ``preds``
+    (stage-1 predictions) when given, else on ground truth."""
+    from tqdm import tqdm
+
+    from pilight.relight.conditions import choose_intrinsics
+
+    intr = choose_intrinsics(pairs, torch.full((len(pairs["key"]),), preds is not None), preds)
+    points = len(sweep_settings(ip1, tp, tp.intrinsics_cfg)) + len(sweep_settings(ip2, tp, tp.relight_cfg))
+    with tqdm(total=points, desc="trade", unit="point") as bar:
+        tick = lambda label: (bar.set_postfix_str(label), bar.update(0))
+        rows1 = sweep_intrinsics(t1, imgs, ip1, tp, seed, tick)
+        bar.update(len(rows1))
+        rows2 = sweep_relight(t2, pairs, intr, ip2, tp, seed, tick)
+        bar.update(len(rows2))
+    return rows1, rows2
+
+
 RELIT_LIGHTS_ROWS = 4  # test views in reports/relit_lights.png
 
 
@@ -293,10 +330,18 @@ def lights_grid(task, shards: Path, split: str, ip, seed: int, preds: dict | Non
 
 
 def write_trade(
-    rows1: list[dict], rows2: list[dict], n1: int, n2: int, conditions: str, metrics: Path, plots: Path, reports: Path
+    rows1: list[dict],
+    rows2: list[dict],
+    n1: int,
+    n2: int,
+    conditions: str,
+    lights: np.ndarray,
+    metrics: Path,
+    plots: Path,
+    reports: Path,
 ) -> str:
-    """metrics (every point), plots/trade_<stage>[_pareto_<metric>].json, reports/trade_<stage>.png and
-    reports/trade.md; returns the markdown."""
+    """metrics (every point), plots/trade_<stage>[_pareto_<metric>].json, reports/trade_<stage>.png,
+    reports/trade.md and reports/relit_lights.png (``lights``: ``lights_grid``); returns the markdown."""
     for d in (metrics.parent, plots, reports):
         d.mkdir(parents=True, exist_ok=True)
     result = {
@@ -331,4 +376,5 @@ def write_trade(
         )
     )
     atomic.write_text(reports / "trade.md", md)
+    atomic.write_png(reports / "relit_lights.png", lights)
     return md
