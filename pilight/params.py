@@ -479,6 +479,11 @@ class RelightParams(ModelParams):
         "normal (knows no roughness); ggx = a microfacet highlight of the ball's dominant light "
         "with the conditioning roughness and Fresnel (pilight.physics.specular_model)",
     )
+    identity_pairs: bool = Field(
+        True,
+        description="train on the shards' identity pairs (a -> a) too; false = cross-light pairs only "
+        "(the reconstruction pairs stay in evaluation)",
+    )
     d_calc_condition: tuple[Literal["relit", "diffuse", "specular"], ...] = Field(
         (),
         description="branches that also get D_calc (Lambertian lookup of the target ball with the conditioning "

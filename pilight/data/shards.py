@@ -368,6 +368,7 @@ class ShardDataset(IterableDataset):
         repeat: bool = False,
         seed: int = 0,
         buffer: int = 256,
+        cross_only: bool = False,
     ):
         if task not in ("intrinsics", "relight"):
             raise ValueError(f"task must be 'intrinsics' or 'relight', got {task!r}")
@@ -382,6 +383,8 @@ class ShardDataset(IterableDataset):
         self.pairs: dict[tuple[str, int], list[tuple[int, int]]] = {}
         if task == "relight":
             for p in read_pairs(Path(shard_dir) / "pairs" / f"{split}.tsv"):
+                if cross_only and p.a == p.b:  # an identity pair (a -> a)
+                    continue
                 self.pairs.setdefault((p.scene, p.view), []).append((p.a, p.b))
 
     def set_epoch(self, epoch: int) -> None:
@@ -542,11 +545,15 @@ def relight_dataset(
     repeat: bool = False,
     seed: int = 0,
     buffer: int = 256,
+    cross_only: bool = False,
 ) -> ShardDataset:
     """Stage 2: {key, meta_a, meta_b, image_a, ball_a, image_b, ball_b, diffuse_b, specular_b, albedo,
     normal, roughness, metallic, mask} (+ ball_lambertian_a/_b when rendered): input under light a
-    (with the ball of that light), target under light b, same view."""
-    return ShardDataset(shard_dir, split, "relight", shuffle=shuffle, repeat=repeat, seed=seed, buffer=buffer)
+    (with the ball of that light), target under light b, same view. ``cross_only``: without the
+    identity pairs (a -> a)."""
+    return ShardDataset(
+        shard_dir, split, "relight", shuffle=shuffle, repeat=repeat, seed=seed, buffer=buffer, cross_only=cross_only
+    )
 
 
 def eval_dataset(

@@ -135,7 +135,9 @@ class RelightTask:
         return self
 
     def batches(self, epoch: int) -> Iterable[Any]:
-        ds = relight_dataset(self.shard_dir, "train", shuffle=True, seed=self.seed)
+        ds = relight_dataset(
+            self.shard_dir, "train", shuffle=True, seed=self.seed, cross_only=not self.p.identity_pairs
+        )
         ds.set_epoch(epoch)
         return make_loader(ds, self.p.train.batch_size, num_workers=self.p.train.num_workers, drop_last=True)
 

@@ -313,6 +313,15 @@ def test_pairs_share_scene_and_view_and_include_identity(shards):
     assert again == [f"{s}_v{v:02d}_l{a:02d}_to_l{b:02d}" for s, v, a, b in got]
 
 
+def test_cross_only_drops_exactly_the_identity_pairs(shards):
+    listed = {(p.scene, p.view, p.a, p.b) for p in read_pairs(shards / "pairs" / "train.tsv")}
+    got = set()
+    for p in relight_dataset(shards, "train", shuffle=True, seed=1, cross_only=True):
+        a, b = json.loads(p["meta_a"]), json.loads(p["meta_b"])
+        got.add((a["scene"], a["view"], a["light"], b["light"]))
+    assert got == {k for k in listed if k[2] != k[3]} and len(got) == 3 * 6
+
+
 @pytest.mark.parametrize("task", ["intrinsics", "relight"])
 def test_two_workers_over_one_shard_terminate_and_see_each_item_once(renders, tmp_path, task):
     out = tmp_path / "one"
