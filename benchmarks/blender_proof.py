@@ -42,6 +42,7 @@ from pilight.data.exr import read_exr  # noqa: E402
 from pilight.params import RenderParams  # noqa: E402
 from pilight.physics.envmap import ball_to_envmap  # noqa: E402
 from pilight.physics.shading import diffuse_shading  # noqa: E402
+from pilight.render.spec import one_object_spec  # noqa: E402
 
 SID = "train_0000"
 LIGHT_DIR = np.array([4.0, -3.0, 2.0])
@@ -69,37 +70,6 @@ LIGHTS = {
     "point 20 m": point(20.0),
 }
 OBJECTS = {"sphere": "sphere", "Suzanne": "monkey"}
-
-
-def spec_for(shape: str, lights: list[dict]) -> dict:
-    mat = {
-        "type": "principled",
-        "base_color": {"const": [0.8, 0.8, 0.8]},
-        "roughness": {"const": 0.5},
-        "metallic": {"const": 0.0},
-    }
-    obj = {
-        "shape": shape,
-        "location": [0.0, 0.0, 0.0],
-        "rotation_deg": [0, 0, 0],
-        "scale": 1.0,
-        "modifiers": [],
-        "material": mat,
-    }
-    return {
-        "id": SID,
-        "split": "train",
-        "index": 0,
-        "kind": "object",
-        "seed": 0,
-        "cycles_seed": 7,
-        "objects": [obj],
-        "assets": [],
-        "backdrop": None,
-        "target": [0.0, 0.0, 0.0],
-        "views": [{"location": [0.0, -5.0, 0.0], "target": [0.0, 0.0, 0.0], "lens_mm": 50.0}],
-        "lights": [lights],
-    }
 
 
 def erode(m: np.ndarray, r: int) -> np.ndarray:
@@ -131,7 +101,7 @@ def render(shape: str, lights: dict, params: RenderParams, erode_px: int, cast_s
     from pilight.render import dataset, scene
 
     names = list(lights)
-    spec = spec_for(shape, [lights[n] for n in names])
+    spec = one_object_spec(shape, [lights[n] for n in names], SID)
     with tempfile.TemporaryDirectory(prefix="blender_proof_") as d:
         root = Path(d)
         (root / ".tmp").mkdir()

@@ -34,6 +34,11 @@ def params_file(tmp_path: Path, sections: dict[str, dict]) -> Path:
     return path
 
 
+def training_outputs(root: Path) -> list:
+    """The output flags of a training stage script (model, checkpoints, dvclive), all under root."""
+    return ["--out", root / "model", "--checkpoints", root / "ckpt", "--live", root / "live"]
+
+
 def stage_env(root: Path = REPO) -> dict[str, str]:
     """The environment a stage script runs in: `root`'s pilight first. The scripts import the installed
     package; an editable install of another checkout must not stand in for the code under test."""

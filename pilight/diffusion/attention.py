@@ -49,8 +49,8 @@ class CrossBatchAttnProcessor:
                 "it was called with encoder_hidden_states (a cross-attention layer)"
             )
         if attention_mask is not None:
-            raise NotImplementedError(
-                "CrossBatchAttnProcessor does not support attention masks (a per-item mask has no meaning across views)"
+            raise ValueError(
+                "CrossBatchAttnProcessor refuses attention masks: a per-item mask has no meaning across views"
             )
         views = self.num_views
         residual = hidden_states

@@ -279,3 +279,38 @@ def scene_spec(p: RenderParams, seed: int, split: str, index: int) -> dict:
         "views": views,
         "lights": lights,
     }
+
+
+def one_object_spec(shape: str, lights: list[dict], scene_id: str = "train_0000") -> dict:
+    """A scene spec of one `shape` at the origin, a gray (0.8) Principled dielectric of roughness 0.5,
+    seen from 5 m along -y, under `lights` (the light specs of its one view): the controlled scene
+    that the proofs against Blender render (tests/physics/test_physics_blender.py,
+    benchmarks/blender_proof.py)."""
+    material = {
+        "type": "principled",
+        "base_color": {"const": [0.8, 0.8, 0.8]},
+        "roughness": {"const": 0.5},
+        "metallic": {"const": 0.0},
+    }
+    obj = {
+        "shape": shape,
+        "location": [0.0, 0.0, 0.0],
+        "rotation_deg": [0, 0, 0],
+        "scale": 1.0,
+        "modifiers": [],
+        "material": material,
+    }
+    return {
+        "id": scene_id,
+        "split": scene_id.split("_")[0],
+        "index": 0,
+        "kind": "object",
+        "seed": 0,
+        "cycles_seed": 7,
+        "objects": [obj],
+        "assets": [],
+        "backdrop": None,
+        "target": [0.0, 0.0, 0.0],
+        "views": [{"location": [0.0, -5.0, 0.0], "target": [0.0, 0.0, 0.0], "lens_mm": 50.0}],
+        "lights": [lights],
+    }

@@ -134,7 +134,7 @@ def test_errors_are_explicit():
         CrossBatchAttnProcessor(4)(attn, torch.randn(6, 5, 32))
     with pytest.raises(ValueError, match="self-attention"):
         CrossBatchAttnProcessor(2)(attn, torch.randn(4, 5, 32), encoder_hidden_states=torch.randn(4, 3, 32))
-    with pytest.raises(NotImplementedError, match="mask"):
+    with pytest.raises(ValueError, match="mask"):
         CrossBatchAttnProcessor(2)(attn, torch.randn(4, 5, 32), attention_mask=torch.ones(4, 5))
     with pytest.raises(ValueError):
         CrossBatchAttnProcessor(0)

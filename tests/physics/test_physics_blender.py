@@ -38,6 +38,7 @@ from pilight.data.exr import read_exr
 from pilight.params import RenderParams
 from pilight.physics.envmap import ball_to_envmap
 from pilight.physics.shading import diffuse_shading
+from pilight.render.spec import one_object_spec
 
 pytestmark = pytest.mark.slow
 
@@ -75,44 +76,13 @@ def _params() -> RenderParams:
     )
 
 
-def _spec() -> dict:
-    mat = {
-        "type": "principled",
-        "base_color": {"const": [0.8, 0.8, 0.8]},
-        "roughness": {"const": 0.5},
-        "metallic": {"const": 0.0},
-    }
-    obj = {
-        "shape": "sphere",
-        "location": [0.0, 0.0, 0.0],
-        "rotation_deg": [0, 0, 0],
-        "scale": 1.0,
-        "modifiers": [],
-        "material": mat,
-    }
-    return {
-        "id": SID,
-        "split": "train",
-        "index": 0,
-        "kind": "object",
-        "seed": 0,
-        "cycles_seed": 7,
-        "objects": [obj],
-        "assets": [],
-        "backdrop": None,
-        "target": [0.0, 0.0, 0.0],
-        "views": [{"location": [0.0, -5.0, 0.0], "target": [0.0, 0.0, 0.0], "lens_mm": 50.0}],
-        "lights": [[LIGHTS[n] for n in NAMES]],
-    }
-
-
 @pytest.fixture(scope="module")
 def rendered(tmp_path_factory):
     pytest.importorskip("bpy")
     from pilight.render import dataset, scene
 
     root: Path = tmp_path_factory.mktemp("blender_proof")
-    spec = _spec()
+    spec = one_object_spec("sphere", [LIGHTS[n] for n in NAMES], SID)
     handles = scene.build(spec, _params(), dataset.bundled_hdri_dir())
     tmp = root / ".tmp"
     tmp.mkdir()

@@ -13,7 +13,7 @@ import pytest
 from accelerate.state import AcceleratorState
 
 from pilight.data.shards import read_index
-from tests.stage_scripts import REPO, params_file, tiny_shards
+from tests.stage_scripts import REPO, params_file, tiny_shards, training_outputs
 
 TINY = {
     "unet": {"block_out_channels": [8, 8], "layers_per_block": 1, "attention_head_dim": 4, "cross_attention_dim": 8},
@@ -56,12 +56,7 @@ def _train_args(tmp_path: Path, shards: Path, params: Path) -> list[str]:
         str(params),
         "--shards",
         str(shards),
-        "--out",
-        str(tmp_path / "model"),
-        "--checkpoints",
-        str(tmp_path / "ckpt"),
-        "--live",
-        str(tmp_path / "live"),
+        *map(str, training_outputs(tmp_path)),
     ]
 
 

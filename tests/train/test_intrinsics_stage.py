@@ -11,7 +11,7 @@ import torch
 from pilight.data.shards import intrinsics_dataset, make_loader
 from pilight.params import DOMAINS, IntrinsicsParams, SamplingParams
 from pilight.train.intrinsics import IntrinsicsTask, domain_targets, latent_mask, masked_latent_mse, targets_to_maps
-from tests.stage_scripts import params_file, run_stage, tiny_shards
+from tests.stage_scripts import params_file, run_stage, tiny_shards, training_outputs
 
 TINY = {
     "unet": {"block_out_channels": [32, 32], "layers_per_block": 1, "attention_head_dim": 8, "cross_attention_dim": 32},
@@ -104,12 +104,7 @@ def test_train_infer_evaluate_scripts(shards, tmp_path):
         params,
         "--shards",
         shards,
-        "--out",
-        tmp_path / "model",
-        "--checkpoints",
-        tmp_path / "ckpt",
-        "--live",
-        tmp_path / "live",
+        *training_outputs(tmp_path),
     )
     assert r.returncode == 0, r.stderr
     assert json.loads((tmp_path / "live" / "metrics.json").read_text())["steps"] == 4
@@ -162,12 +157,7 @@ def test_two_training_runs_give_the_same_bytes(shards, tmp_path, script):
             params,
             "--shards",
             shards,
-            "--out",
-            tmp_path / run / "model",
-            "--checkpoints",
-            tmp_path / run / "ckpt",
-            "--live",
-            tmp_path / run / "live",
+            *training_outputs(tmp_path / run),
         )
         assert r.returncode == 0, r.stderr
     weights = [(tmp_path / run / "model" / "model.safetensors").read_bytes() for run in ("a", "b")]
@@ -189,12 +179,7 @@ def test_bad_model_input_fails_before_training(shards, tmp_path, change, needle,
         _params(tmp_path, **change),
         "--shards",
         shards,
-        "--out",
-        tmp_path / "model",
-        "--checkpoints",
-        tmp_path / "ckpt",
-        "--live",
-        tmp_path / "live",
+        *training_outputs(tmp_path),
     )
     assert r.returncode == code and needle in r.stderr, r.stderr
     assert not (tmp_path / "ckpt").exists()
@@ -211,11 +196,6 @@ def test_empty_shard_list_is_an_error(tmp_path):
         _params(tmp_path),
         "--shards",
         tmp_path / "shards",
-        "--out",
-        tmp_path / "model",
-        "--checkpoints",
-        tmp_path / "ckpt",
-        "--live",
-        tmp_path / "live",
+        *training_outputs(tmp_path),
     )
     assert r.returncode == 1 and "train split has no shards" in r.stderr, r.stderr

@@ -17,7 +17,7 @@ from pilight.relight.conditions import PRED_DOMAINS, choose_intrinsics
 from pilight.relight.encoding import tonemap
 from pilight.relight.physics_terms import physics_terms
 from pilight.train.relight import RelightTask
-from tests.stage_scripts import params_file, run_stage, tiny_shards
+from tests.stage_scripts import params_file, run_stage, tiny_shards, training_outputs
 
 TINY = {
     "unet": {"block_out_channels": [32, 32], "layers_per_block": 1, "attention_head_dim": 8, "cross_attention_dim": 32},
@@ -221,12 +221,7 @@ def test_train_relight_evaluate_scripts(shards, preds, tmp_path):
         shards,
         "--pred",
         preds,
-        "--out",
-        tmp_path / "model",
-        "--checkpoints",
-        tmp_path / "ckpt",
-        "--live",
-        tmp_path / "live",
+        *training_outputs(tmp_path),
     )
     assert r.returncode == 0, r.stderr
     live = json.loads((tmp_path / "live" / "metrics.json").read_text())
@@ -321,12 +316,7 @@ def test_train_without_predictions_is_a_clear_error(shards, tmp_path):
         shards,
         "--pred",
         tmp_path / "nopred",
-        "--out",
-        tmp_path / "model",
-        "--checkpoints",
-        tmp_path / "ckpt",
-        "--live",
-        tmp_path / "live",
+        *training_outputs(tmp_path),
     )
     assert r.returncode == 1 and "needs stage-1 predictions" in r.stderr, r.stderr
     assert not (tmp_path / "ckpt").exists()
@@ -343,12 +333,7 @@ def test_empty_shard_list_is_an_error(tmp_path):
         _params(tmp_path),
         "--shards",
         tmp_path / "shards",
-        "--out",
-        tmp_path / "model",
-        "--checkpoints",
-        tmp_path / "ckpt",
-        "--live",
-        tmp_path / "live",
+        *training_outputs(tmp_path),
     )
     assert r.returncode == 1 and "train split has no shards" in r.stderr, r.stderr
 
