@@ -2,26 +2,14 @@
 
 import pytest
 import torch
-from diffusers import UNet2DConditionModel
 from diffusers.models.attention_processor import Attention, AttnProcessor2_0
 
 from pilight.diffusion.attention import CrossBatchAttnProcessor, set_cross_batch_attention
+from tests.diffusion.tiny_unet import tiny_diffusers_unet
 
 
 def _tiny_unet():
-    torch.manual_seed(0)
-    return UNet2DConditionModel(
-        sample_size=8,
-        in_channels=4,
-        out_channels=4,
-        block_out_channels=(32, 32),
-        layers_per_block=1,
-        norm_num_groups=8,
-        cross_attention_dim=16,
-        attention_head_dim=4,
-        down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"),
-        up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"),
-    ).eval()
+    return tiny_diffusers_unet().eval()
 
 
 def _unet_out(unet, x, ehs):

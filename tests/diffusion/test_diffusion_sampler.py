@@ -7,18 +7,9 @@ from pilight.diffusion.conditioning import LearnedEmbedding
 from pilight.diffusion.model import DomainDiffusion
 from pilight.diffusion.sampler import sample
 from pilight.diffusion.schedule import make_train_scheduler
-from pilight.diffusion.unet import UNetSpec, build_unet
+from pilight.diffusion.unet import build_unet
+from tests.diffusion.tiny_unet import TINY
 
-TINY = UNetSpec(
-    sample_size=8,
-    block_out_channels=(32, 32),
-    layers_per_block=1,
-    attention_head_dim=4,
-    cross_attention_dim=16,
-    norm_num_groups=8,
-    down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"),
-    up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"),
-)
 LATENT, COND, DOMAINS = 4, 6, 4
 
 

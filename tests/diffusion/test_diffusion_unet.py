@@ -5,17 +5,7 @@ import torch
 from diffusers import UNet2DConditionModel
 
 from pilight.diffusion.unet import PAPER_UNET_SPEC, UNetSpec, build_unet, load_pretrained_unet
-
-TINY = UNetSpec(
-    sample_size=8,
-    block_out_channels=(32, 32),
-    layers_per_block=1,
-    attention_head_dim=4,
-    cross_attention_dim=16,
-    norm_num_groups=8,
-    down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"),
-    up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"),
-)
+from tests.diffusion.tiny_unet import TINY, tiny_diffusers_unet
 
 
 def test_build_unet_domain_embedding():
@@ -45,19 +35,7 @@ def test_default_and_paper_specs():
 
 @pytest.fixture()
 def pretrained_dir(tmp_path):
-    torch.manual_seed(0)
-    unet = UNet2DConditionModel(
-        sample_size=8,
-        in_channels=4,
-        out_channels=4,
-        block_out_channels=(32, 32),
-        layers_per_block=1,
-        norm_num_groups=8,
-        cross_attention_dim=16,
-        attention_head_dim=4,
-        down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"),
-        up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"),
-    )
+    unet = tiny_diffusers_unet()
     path = tmp_path / "tiny-unet"
     unet.save_pretrained(path)
     return path
