@@ -13,6 +13,8 @@ and the profile of the baseline lists the operators with the most self CPU time.
 Variants (each against the baseline, one at a time):
   threads        torch.set_num_threads(1) instead of all cores (oversubscription check)
   channels_last  the UNet in channels_last memory format
+  bf16           the loss computed under torch.autocast("cpu", bfloat16) (oneDNN's bf16 kernels where the
+                 CPU has AVX512-BF16/AMX), weights and optimizer in fp32, as accelerate's bf16 does
   no_physics     relight only: lambda_ds = lambda_ps = lambda_rec = lambda_image = 0 (the decode-with-
                  gradients path switched off; what the physics terms cost, not a proposal)
 """
@@ -54,7 +56,7 @@ def read_batches(task, n: int) -> tuple[list, float]:
     return out, (time.perf_counter() - t0) / max(len(out), 1)
 
 
-def time_steps(task, p, batches: list, *, seed: int, profile: bool = False):
+def time_steps(task, p, batches: list, *, seed: int, profile: bool = False, bf16: bool = False):
     module = task.trainable()
     params = [q for q in module.parameters() if q.requires_grad]
     opt = torch.optim.AdamW(params, lr=p.train.lr, weight_decay=p.train.weight_decay)
@@ -62,7 +64,8 @@ def time_steps(task, p, batches: list, *, seed: int, profile: bool = False):
     module.train()
 
     def step(batch):
-        loss, _ = task.loss(batch, gen, module)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            loss, _ = task.loss(batch, gen, module)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, 1.0)
         opt.step()
@@ -92,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pred", type=Path, default=Path("data/intrinsics_pred"))
     ap.add_argument("--stage", choices=["intrinsics", "relight", "both"], default="both")
     ap.add_argument("--steps", type=int, default=6, help="timed steps per variant (after one warm-up)")
-    ap.add_argument("--variants", nargs="*", default=["threads", "channels_last", "no_physics"])
+    ap.add_argument("--variants", nargs="*", default=["threads", "channels_last", "bf16", "no_physics"])
     ap.add_argument("--top", type=int, default=12, help="operators listed from the baseline's profile")
     args = ap.parse_args(argv)
     seed = load_section("base", args.params).seed
@@ -122,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
             if variant == "threads":
                 torch.set_num_threads(1)
             try:
-                times, _ = time_steps(task, p, batches, seed=seed)
+                times, _ = time_steps(task, p, batches, seed=seed, bf16=variant == "bf16")
             finally:
                 torch.set_num_threads(cores)
             rows.append((variant, 1000 * statistics.median(times), 1000 * min(times)))

@@ -94,6 +94,12 @@ def _lr_schedule(
     )
 
 
+def cpu_has_native_bf16() -> bool:
+    """Whether oneDNN has native bf16 kernels on this CPU (AVX512-BF16 or AMX). Without them CPU
+    autocast still computes in bf16, but by emulation, and a step is slower than in fp32."""
+    return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
+
+
 def _trainable(module: torch.nn.Module) -> list[torch.nn.Parameter]:
     params = [p for p in module.parameters() if p.requires_grad]
     if not params:
@@ -238,6 +244,12 @@ def train(
     if mixed == "fp16" and not cuda:
         warnings.warn("fp16 mixed precision needs a GPU; training in fp32 on CPU", stacklevel=2)
         mixed = "no"
+    if mixed == "bf16" and not cuda and not cpu_has_native_bf16():
+        warnings.warn(
+            "train.mixed_precision: bf16 on a CPU without native bf16 kernels (AVX512-BF16 or AMX): "
+            "oneDNN emulates them and a step is likely slower than in fp32; set mixed_precision: fp32",
+            stacklevel=2,
+        )
     acc = Accelerator(mixed_precision=mixed, gradient_accumulation_steps=cfg.grad_accum, cpu=not cuda)
     module, model, optimizer, scheduler, params, sharded = prepare_training(acc, task, cfg)
     ema = None

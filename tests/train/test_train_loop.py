@@ -229,9 +229,22 @@ def test_nondeterministic_epoch_detected_on_resume(tmp_path: Path):
         train(ToyTask(n_batches=2), cfg(steps=8), tmp_path / "c", None, progress=False)
 
 
-def test_bf16_on_cpu_is_finite(tmp_path: Path):
+def test_bf16_on_cpu_is_finite_and_takes_effect(tmp_path: Path):
     out = train(ToyTask(), cfg(mixed_precision="bf16", steps=6), tmp_path / "c", None, progress=False)
     assert np.isfinite(out["final_loss"])
+    AcceleratorState._reset_state(True)
+    fp32 = train(ToyTask(), cfg(mixed_precision="fp32", steps=6), tmp_path / "f", None, progress=False)
+    assert out["final_loss"] != fp32["final_loss"]  # autocast ran the linear layers in bf16
+
+
+def test_bf16_on_a_cpu_without_native_kernels_warns(tmp_path: Path, monkeypatch):
+    if torch.cuda.is_available():
+        pytest.skip("CPU-only behaviour")
+    import pilight.train.loop as loop
+
+    monkeypatch.setattr(loop, "cpu_has_native_bf16", lambda: False)
+    with pytest.warns(UserWarning, match="without native bf16 kernels.*mixed_precision: fp32"):
+        train(ToyTask(), cfg(mixed_precision="bf16", steps=2), tmp_path / "c", None, progress=False)
 
 
 def test_fp16_on_cpu_falls_back_to_fp32(tmp_path: Path):
