@@ -1,12 +1,17 @@
 """Ceilings of candidate relit-output forms, computed from ground-truth maps (no model).
 
     python benchmarks/oracle_relight.py [--shards data/shards] [--pred data/intrinsics_pred] [--split test]
+    python benchmarks/oracle_relight.py --per-map      # + one stage-1 map at a time, ground truth for the rest
 
 For every cross-light pair of the split, each candidate forms I_hat_b on the mask from physics and
 (some) ground truth, and copies the input off the mask. Printed per candidate: change_r2 on the full
 image and on the mask (pilight.eval.light_following), and relight PSNR / SSIM (the evaluation's
 tone-mapped space), beside "copy the input". With --pred, the same candidates with the conditions
-(albedo, normal, metallic) taken from stage-1 predictions: what stage-1 errors cost each form.
+(albedo, normal, roughness, metallic) taken from stage-1 predictions: what stage-1 errors cost each
+form. --per-map adds one setting per map, "pred <map>": that map from stage 1 and the others from the
+ground truth, so the gap between the two settings is split by the map that opens it. It also adds
+"pred, albedo at GT level" and "pred albedo at GT level": the stage-1 albedo rescaled per image and
+channel to the ground truth's mean on the mask (what the albedo's level costs, apart from its pattern).
 
 Candidates (A, N, m: the conditions; D, S: the target light's ground truth; "cell" = what a
 perfect network at one value per 4x4 codec cell would output):
@@ -44,7 +49,7 @@ from pilight.eval.metrics import psnr_per_image, ssim_per_image
 from pilight.physics.calculated import diffuse_calculated, specular_calculated
 from pilight.physics.source_light import estimate_source_ball
 from pilight.physics.specular_model import specular_from_ball
-from pilight.relight.conditions import choose_intrinsics, optional_predictions
+from pilight.relight.conditions import PRED_DOMAINS, choose_intrinsics, optional_predictions
 from pilight.relight.encoding import gain_decode, gain_encode
 from pilight.relight.physics_first import anchors, compose_relit, diffuse_target, gain_of
 
@@ -113,15 +118,36 @@ def candidates(b: dict, c: dict) -> dict[str, torch.Tensor]:
     return out
 
 
+def conditions(setting: str, b: dict, preds: dict | None) -> dict[str, torch.Tensor]:
+    """The conditions of one setting: "gt", "pred", "pred <map>" (that map from stage 1, the rest
+    ground truth), or "pred[,] albedo at GT level" (the stage-1 albedo at the ground truth's level)."""
+    c = choose_intrinsics(b, torch.full((len(b["meta_a"]),), preds is not None), preds)
+    one = setting.removeprefix("pred ").removesuffix(" at GT level")
+    if one in PRED_DOMAINS:  # one map from stage 1, the others from the ground truth
+        c = {d: (c[d] if d == one else b[d].clone()) for d in c}
+    if setting.endswith("at GT level"):  # per image and channel, the mean on the mask
+        inside = (b["mask"] > 0.5).float()
+        truth = (b["albedo"].float() * inside).sum((2, 3), keepdim=True)
+        pred = (c["albedo"].float() * inside).sum((2, 3), keepdim=True).clamp_min(1e-6)
+        c["albedo"] = c["albedo"] * (truth / pred)
+    return c
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--shards", type=Path, default=Path("data/shards"))
     ap.add_argument("--pred", type=Path, default=Path("data/intrinsics_pred"))
     ap.add_argument("--split", default="test")
     ap.add_argument("--json", type=Path, default=None, help="also write the table as JSON")
+    ap.add_argument("--per-map", action="store_true", help="also one stage-1 map at a time (needs --pred)")
     args = ap.parse_args(argv)
     preds = optional_predictions(args.shards, args.pred, args.split, "oracle") if args.pred else None
+    if args.per_map and preds is None:
+        ap.error(f"--per-map needs stage-1 predictions, and none were found under --pred {args.pred}")
     settings = {"gt": None} | ({"pred": preds} if preds is not None else {})
+    if args.per_map:
+        settings |= {f"pred {d}": preds for d in PRED_DOMAINS}
+        settings |= {"pred, albedo at GT level": preds, "pred albedo at GT level": preds}
     scores: dict[str, dict[str, dict]] = {s: {} for s in settings}
     pairs = 0
     for b in make_loader(eval_dataset(args.shards, args.split, "relight"), 8):
@@ -134,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
         pairs += int(cross.sum())
         u_in, u_gt, mask = tonemap01(b["image_a"]), tonemap01(b["image_b"]), b["mask"]
         for setting, p in settings.items():
-            c = choose_intrinsics(b, torch.full((len(b["key"]),), p is not None), p)
+            c = conditions(setting, b, p)
             forms = {"copy the input": b["image_a"].float()}
             forms.update({k: torch.where(mask > 0.5, v, b["image_a"].float()) for k, v in candidates(b, c).items()})
             for name, img in forms.items():
