@@ -97,9 +97,10 @@ def run_sweep(
     score: Callable[[object], dict[str, float | None]],
     count: int,
     seed: int,
-    progress: Callable[[str], None] | None = None,
+    progress: Callable[[str | None], None] | None = None,
 ) -> list[dict]:
-    """Time ``predict`` (one pass over the sweep's images) for each setting and score its output."""
+    """Time ``predict`` (one pass over the sweep's images) for each setting and score its output.
+    ``progress`` hears each point's label before it runs and None once it is scored."""
     predict(
         settings[0][1].model_copy(update={"mode": "single_step", "ensemble": 1, "cfg_scale": 1.0}),
         torch.Generator().manual_seed(seed),
@@ -124,6 +125,8 @@ def run_sweep(
                 **score(out),
             }
         )
+        if progress is not None:
+            progress(None)
     return rows
 
 
@@ -289,11 +292,10 @@ def sweep_both(
     intr = choose_intrinsics(pairs, torch.full((len(pairs["key"]),), preds is not None), preds)
     points = len(sweep_settings(ip1, tp, tp.intrinsics_cfg)) + len(sweep_settings(ip2, tp, tp.relight_cfg))
     with tqdm(total=points, desc="trade", unit="point") as bar:
-        tick = lambda label: (bar.set_postfix_str(label), bar.update(0))
+        # the label names the point being sampled; None: it is done, so the bar and its ETA move on
+        tick = lambda label: bar.set_postfix_str(label) if label is not None else bar.update(1)
         rows1 = sweep_intrinsics(t1, imgs, ip1, tp, seed, tick)
-        bar.update(len(rows1))
         rows2 = sweep_relight(t2, pairs, intr, ip2, tp, seed, tick)
-        bar.update(len(rows2))
     return rows1, rows2
 
 

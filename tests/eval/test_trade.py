@@ -52,6 +52,22 @@ def test_run_sweep_times_and_scores_every_point():
     assert all(r["seconds_per_image"] >= 0 for r in rows) and len(seen) == len(rows) + 1  # + the warm-up call
 
 
+def test_progress_hears_each_point_before_and_after_it_runs():
+    """The stage's bar advances once per point (its ETA), not once per sweep."""
+    base = InferIntrinsicsParams(mode="ddim", steps=2)
+    settings = trade.sweep_settings(base, TradeParams(steps=(1, 2), spacings=("trailing",), ensemble=(1,)), (1.0,))
+    heard, calls = [], []
+
+    def predict(sp, gen):
+        calls.append(len(heard))
+        return torch.zeros(1)
+
+    trade.run_sweep(settings, predict, lambda out: {}, count=1, seed=0, progress=heard.append)
+    labels = [trade.describe(sp) for _, sp in settings]
+    assert heard == [x for label in labels for x in (label, None)]
+    assert calls[1:] == [1, 3, 5]  # each point runs after its label and before its None
+
+
 def test_mark_fronts_marks_each_metric_by_its_direction():
     rows = [
         {"factor": "steps", "label": f"DDIM {n}", "seconds_per_image": s, "acc": a, "err": e}
