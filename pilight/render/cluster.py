@@ -78,7 +78,7 @@ def render_partition(part: list[dict], params_json: dict, root: str, hdri_dir: s
     root_path, t0 = Path(root), time.perf_counter()
     bundles, failure = 0, None
     with blender_output_to(Path(log) if log else None):
-        tmp = Path(tempfile.mkdtemp(prefix=".render_tmp_", dir=root_path))
+        tmp = Path(tempfile.mkdtemp(prefix=dataset.TMP_PREFIX, dir=root_path))
         try:
             for spec in part:
                 try:

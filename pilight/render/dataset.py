@@ -92,6 +92,16 @@ def view_is_complete(root: Path, spec: dict, view: int, p: RenderParams) -> bool
     return done.is_file() and done.read_text() == view_stamp(spec, view, p)
 
 
+TMP_PREFIX = ".render_tmp_"  # a render's scratch folder inside the output root (same filesystem: renames are atomic)
+
+
+def remove_stale_scratch(root: Path) -> None:
+    """Scratch folders of renders that died without cleaning up: a killed process or Dask worker cannot
+    run its ``finally``, and what it left (partial EXRs) must not reach the dataset or its DVC hash."""
+    for d in sorted(root.glob(f"{TMP_PREFIX}*")):
+        shutil.rmtree(d, ignore_errors=True)
+
+
 def remove_unasked(root: Path, specs: list[dict]) -> None:
     """Scene folders, and views within them, that the current params do not ask for (fewer scenes or
     views than the last run): a folder the params would not make must not reach the shards."""
@@ -247,13 +257,14 @@ def _render_all(
     t0 = time.perf_counter()
     (root / "manifest.json").unlink(missing_ok=True)  # written last: its presence means the folder is complete
     remove_unasked(root, specs)
+    remove_stale_scratch(root)  # left by a run killed before this one
     try:
         if p.cluster.executor == "dask":
             from pilight.render.cluster import render_on_dask
 
             render_on_dask(specs, p, root, hdri_dir, bar.update, blender_log)
         else:
-            tmp_dir = Path(tempfile.mkdtemp(prefix=".render_tmp_", dir=root))
+            tmp_dir = Path(tempfile.mkdtemp(prefix=TMP_PREFIX, dir=root))
             try:
                 for spec in specs:
                     render_scene(spec, p, root, hdri_dir, tmp_dir, bar.update)
@@ -261,6 +272,7 @@ def _render_all(
                 shutil.rmtree(tmp_dir, ignore_errors=True)
     finally:
         bar.close()
+    remove_stale_scratch(root)  # left by Dask workers killed mid-task (their partitions were rerun elsewhere)
     write_json(
         root / "manifest.json",
         {

@@ -104,9 +104,11 @@ def test_killed_render_resumes_to_identical_files(reference, tmp_path):
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
     assert not (out / "manifest.json").exists(), "killed before the end: no manifest"
+    assert list(out.glob(".render_tmp_*")), "the killed render left its scratch folder (what the rerun must clear)"
     r = run_stage(params, out)
     assert r.returncode == 0, r.stderr
     assert tree_digest(out) == tree_digest(first)
+    assert not list(out.glob(".render_tmp_*")), "a dead run's scratch folder would reach the dataset's hash"
 
 
 def test_rerun_with_other_params_keeps_no_view_of_the_old_ones(reference, tmp_path):
@@ -269,6 +271,7 @@ def test_dask_render_survives_killed_workers_with_the_in_process_bytes(reference
         os.kill(pid, signal.SIGKILL)
     _, err = proc.communicate(timeout=600)
     assert proc.returncode == 0, err[-3000:]
+    assert not list(out.glob(".render_tmp_*")), "a killed worker's scratch folder was left in the dataset"
     assert rendered_files(out) == rendered_files(first)
     assert len(list((out / ".partitions").glob("*.done"))) == 3  # one marker per partition of 1 scene
     client.wait_for_workers(2, timeout=60)
