@@ -118,14 +118,16 @@ def candidates(b: dict, c: dict) -> dict[str, torch.Tensor]:
     return out
 
 
-def conditions(setting: str, b: dict, preds: dict | None) -> dict[str, torch.Tensor]:
-    """The conditions of one setting: "gt", "pred", "pred <map>" (that map from stage 1, the rest
-    ground truth), or "pred[,] albedo at GT level" (the stage-1 albedo at the ground truth's level)."""
+def conditions(
+    b: dict, preds: dict | None, *, only: str | None = None, at_gt_level: bool = False
+) -> dict[str, torch.Tensor]:
+    """Ground truth (preds None) or stage-1 predictions; ``only``: that map from stage 1 and the rest
+    ground truth; ``at_gt_level``: the albedo rescaled per image and channel to the truth's mean on
+    the mask (its pattern kept, its level the truth's)."""
     c = choose_intrinsics(b, torch.full((len(b["meta_a"]),), preds is not None), preds)
-    one = setting.removeprefix("pred ").removesuffix(" at GT level")
-    if one in PRED_DOMAINS:  # one map from stage 1, the others from the ground truth
-        c = {d: (c[d] if d == one else b[d].clone()) for d in c}
-    if setting.endswith("at GT level"):  # per image and channel, the mean on the mask
+    if only is not None:
+        c = {d: (c[d] if d == only else b[d].clone()) for d in c}
+    if at_gt_level:
         inside = (b["mask"] > 0.5).float()
         truth = (b["albedo"].float() * inside).sum((2, 3), keepdim=True)
         pred = (c["albedo"].float() * inside).sum((2, 3), keepdim=True).clamp_min(1e-6)
@@ -144,10 +146,12 @@ def main(argv: list[str] | None = None) -> int:
     preds = optional_predictions(args.shards, args.pred, args.split, "oracle") if args.pred else None
     if args.per_map and preds is None:
         ap.error(f"--per-map needs stage-1 predictions, and none were found under --pred {args.pred}")
-    settings = {"gt": None} | ({"pred": preds} if preds is not None else {})
+    # name -> (predictions or None for ground truth, conditions()'s options)
+    settings = {"gt": (None, {})} | ({"pred": (preds, {})} if preds is not None else {})
     if args.per_map:
-        settings |= {f"pred {d}": preds for d in PRED_DOMAINS}
-        settings |= {"pred, albedo at GT level": preds, "pred albedo at GT level": preds}
+        settings |= {f"pred {d}": (preds, {"only": d}) for d in PRED_DOMAINS}
+        settings["pred, albedo at GT level"] = (preds, {"at_gt_level": True})
+        settings["pred albedo at GT level"] = (preds, {"only": "albedo", "at_gt_level": True})
     scores: dict[str, dict[str, dict]] = {s: {} for s in settings}
     pairs = 0
     for b in make_loader(eval_dataset(args.shards, args.split, "relight"), 8):
@@ -159,8 +163,8 @@ def main(argv: list[str] | None = None) -> int:
         b = {k: (v[cross] if torch.is_tensor(v) else [x for x, keep in zip(v, cross) if keep]) for k, v in b.items()}
         pairs += int(cross.sum())
         u_in, u_gt, mask = tonemap01(b["image_a"]), tonemap01(b["image_b"]), b["mask"]
-        for setting, p in settings.items():
-            c = conditions(setting, b, p)
+        for setting, (p, options) in settings.items():
+            c = conditions(b, p, **options)
             forms = {"copy the input": b["image_a"].float()}
             forms.update({k: torch.where(mask > 0.5, v, b["image_a"].float()) for k, v in candidates(b, c).items()})
             for name, img in forms.items():

@@ -257,7 +257,6 @@ def _render_all(
     t0 = time.perf_counter()
     (root / "manifest.json").unlink(missing_ok=True)  # written last: its presence means the folder is complete
     remove_unasked(root, specs)
-    remove_stale_scratch(root)  # left by a run killed before this one
     try:
         if p.cluster.executor == "dask":
             from pilight.render.cluster import render_on_dask
@@ -272,7 +271,9 @@ def _render_all(
                 shutil.rmtree(tmp_dir, ignore_errors=True)
     finally:
         bar.close()
-    remove_stale_scratch(root)  # left by Dask workers killed mid-task (their partitions were rerun elsewhere)
+    # before the manifest: left by a killed earlier run, or by Dask workers killed mid-task (their
+    # partitions were rerun elsewhere)
+    remove_stale_scratch(root)
     write_json(
         root / "manifest.json",
         {
