@@ -78,6 +78,14 @@ def ball_normals(height: int, width: int, device=None, dtype=torch.float32):
     return n[None], inside[None, None]
 
 
+def light_level(ball: torch.Tensor) -> torch.Tensor:
+    """(B, 1, 1, 1): the ball's mean radiance over its disk / BALL_ALBEDO, i.e. the mean diffuse
+    shading a sphere receives; the unit every map of this light is divided by. Floor 1e-6."""
+    _, disk = ball_normals(*ball.shape[-2:], device=ball.device)
+    mean = (ball.float() * disk[0]).sum((-1, -2)).mean(1) / disk.sum()
+    return (mean / BALL_ALBEDO).clamp_min(1e-6)[:, None, None, None]
+
+
 def envmap_directions(height: int = ENV_H, width: int = ENV_W, device=None, dtype=torch.float32):
     """Unit direction ``3 x h x w`` at each lat-long texel centre (inverse of ``normal_to_uv``)."""
     u = (torch.arange(width, device=device, dtype=dtype) + 0.5) * (2.0 / width) - 1.0

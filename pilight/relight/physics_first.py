@@ -59,7 +59,7 @@ import torch
 
 from pilight.diffusion.codec import cell_smooth
 from pilight.physics.calculated import diffuse_calculated, specular_calculated
-from pilight.physics.envmap import BALL_ALBEDO, ball_normals
+from pilight.physics.envmap import light_level
 from pilight.physics.source_light import estimate_source_balls
 from pilight.physics.specular_model import specular_from_ball
 
@@ -67,14 +67,6 @@ EPS_LEVEL = 0.05  # eps_b / level(ball_b): 5% of the light's mean shading
 GAIN = 2.0  # g = log ratio / GAIN, so |g| stays near the range of the other targets
 G_MAX = 3.0  # |g| clamp when decoding: a factor of e^6 either way
 A_MIN = 0.02  # albedo floor of the D_eff division (a black pixel needs no shading)
-
-
-def light_level(ball: torch.Tensor) -> torch.Tensor:
-    """(B, 1, 1, 1): the ball's mean radiance over its disk / BALL_ALBEDO, i.e. the mean diffuse
-    shading a sphere receives; the unit every map of this light is divided by. Floor 1e-6."""
-    _, disk = ball_normals(*ball.shape[-2:], device=ball.device)
-    mean = (ball.float() * disk[0]).sum((-1, -2)).mean(1) / disk.sum()
-    return (mean / BALL_ALBEDO).clamp_min(1e-6)[:, None, None, None]
 
 
 @dataclass
