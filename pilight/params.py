@@ -371,8 +371,10 @@ class TrainParams(_Section):
     )
     grad_accum: int = Field(1, ge=1)
     max_grad_norm: float | None = Field(1.0, gt=0, description="gradient-norm clip; null = no clipping")
-    mixed_precision: Literal["fp32", "bf16", "fp16"] = Field(
-        "fp32", description="fp32 = no mixed precision (accelerate's 'no')"
+    mixed_precision: Literal["fp32", "bf16", "fp16", "auto"] = Field(
+        "fp32",
+        description="fp32 = no mixed precision (accelerate's 'no'); auto = bf16 on a GPU or a CPU with native "
+        "bf16 kernels (AVX512-BF16/AMX), else fp32 (pilight.train.loop.resolve_mixed_precision)",
     )
     cond_dropout: float = Field(0.1, ge=0.0, le=1.0, description="drop the condition so CFG works")
     terminal_fraction: float = Field(
@@ -414,10 +416,63 @@ class ModelParams(_Section):
     train: TrainParams = TrainParams()
 
 
+class TaskLossParams(_Section):
+    """Weights of stage 1's task losses (pilight.train.map_losses), for objective: task."""
+
+    albedo: float = Field(1.0, ge=0.0, le=100.0, description="scale-invariant albedo MSE (structure)")
+    albedo_level: float = Field(
+        0.1, ge=0.0, le=100.0, description="(log alpha*)^2, the per-image albedo level, relative to albedo"
+    )
+    normal: float = Field(1.0, ge=0.0, le=100.0, description="angular error (radians)")
+    roughness: float = Field(1.0, ge=0.0, le=100.0, description="L1")
+    metallic: float = Field(1.0, ge=0.0, le=100.0, description="binary cross-entropy")
+
+
+class AugmentParams(_Section):
+    """Augmentations that are exact for renders: the flipped image's truth is the flipped truth."""
+
+    flip: bool = Field(False, description="horizontal flip with probability 1/2, normals' x negated")
+    crop: int | None = Field(
+        None, ge=8, le=8192, description="train on random square crops of this side (pixels); null = whole images"
+    )
+
+
 class IntrinsicsParams(ModelParams):
     albedo_space: Literal["linear", "srgb"] = Field(
         "srgb", description="space the albedo is predicted in (Marigold habit): srgb spreads dark albedos over [-1, 1]"
     )
+    objective: Literal["diffusion", "task"] = Field(
+        "diffusion",
+        description="diffusion = the paper: v-prediction MSE on latents at uniform timesteps; task = one "
+        "evaluation at t = T-1 (where single-step inference runs) with losses on the decoded maps (E2E-FT)",
+    )
+    layout: Literal["domains", "joint"] = Field(
+        "domains",
+        description="domains = the paper: one UNet item per map, one-hot labels, cross-batch attention; "
+        "joint = one UNet item whose output carries all four maps (a quarter of the UNet work)",
+    )
+    task_loss: TaskLossParams = TaskLossParams()
+    augment: AugmentParams = AugmentParams()
+
+    @model_validator(mode="after")
+    def _objective(self) -> IntrinsicsParams:
+        if self.objective == "task" and self.schedule.terminal_input != "zero":
+            raise ValueError(
+                "intrinsics.objective 'task' trains the single-step prediction from a zero latent at t = T-1, "
+                "so it needs schedule.terminal_input: zero (and rescale_zero_snr: true)"
+            )
+        if self.layout == "joint" and self.unet.init == "pretrained":
+            raise ValueError(
+                "intrinsics.layout 'joint' predicts all maps from one UNet output, which a pretrained SD2/GeoWizard "
+                "UNet (4 output channels) does not have; use layout: domains with unet.init: pretrained"
+            )
+        step = self.codec.factor * 2 ** (len(self.unet.block_out_channels) - 1)
+        if self.augment.crop is not None and self.augment.crop % step:
+            raise ValueError(
+                f"intrinsics.augment.crop {self.augment.crop} must be divisible by {step} "
+                "(the codec factor times the UNet's downsampling)"
+            )
+        return self
 
 
 class RelightParams(ModelParams):

@@ -92,12 +92,26 @@ class Stack:
         }
 
 
-def build_stack(p, *, num_domains: int, num_views: int | None = None, cond_channels: int | None = None) -> Stack:
-    """p: a params section with codec, unet, conditioning, cross_batch_attention, schedule."""
+def build_stack(
+    p,
+    *,
+    num_domains: int,
+    num_views: int | None = None,
+    cond_channels: int | None = None,
+    maps_per_item: int = 1,
+) -> Stack:
+    """p: a params section with codec, unet, conditioning, cross_batch_attention, schedule.
+    ``maps_per_item``: how many maps one UNet item predicts, stacked on channels (stage 1's joint layout:
+    the UNet's output is that many codec latents)."""
     num_views = num_views or num_domains
     codec = make_codec(p.codec.kind, factor=p.codec.factor, path=p.codec.path)
     latent = codec.latent_channels
     cond = cond_channels or latent
+    if p.unet.init == "pretrained" and maps_per_item != 1:
+        raise ModelError(
+            f"a pretrained UNet predicts one map per item; {maps_per_item} maps per item need a UNet built from params"
+        )
+    latent *= maps_per_item
     if p.unet.init == "pretrained":
         unet = load_pretrained_unet(p.unet.path, in_channels=latent + cond, num_domains=num_domains)
         if unet.config.out_channels != latent:

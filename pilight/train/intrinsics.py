@@ -1,9 +1,21 @@
 """Stage 1, inverse neural rendering: one image -> albedo, normal, roughness, metallic together.
 
-Each sample becomes V = 4 batch items (one per domain, sample-major), all conditioned on the same
-image latent, at the same timestep, told apart by one-hot domain labels; cross-batch attention
-lets the four outputs see each other (paper, Sec. "Stage 1: Inverse Neural Rendering").
-Loss (paper, L_stage1): MSE(v_pred * m_z, v_target * m_z), m_z = the mask on the latent grid.
+Two layouts (`intrinsics.layout`):
+- ``domains`` (the paper): each sample becomes V = 4 batch items (one per domain, sample-major), all
+  conditioned on the same image latent, at the same timestep, told apart by one-hot domain labels;
+  cross-batch attention lets the four outputs see each other (paper, Sec. "Stage 1").
+- ``joint``: one item per sample whose UNet output is the four maps' latents stacked on channels: a
+  quarter of the UNet work per sample, which on a CPU buys four times the samples.
+
+Two objectives (`intrinsics.objective`):
+- ``diffusion`` (the paper, L_stage1): MSE(v_pred * m_z, v_target * m_z) at sampled timesteps,
+  m_z = the mask on the latent grid.
+- ``task`` (E2E-FT): every sample at t = T-1 from a zero latent, the one evaluation single-step
+  inference makes; the prediction x0 = -v is decoded and graded map by map in pixel space
+  (pilight.train.map_losses). No training sample is spent on timesteps inference never visits.
+
+Augmentations exact for renders (`intrinsics.augment`): a horizontal flip (normals' x negated) and
+square crops.
 """
 
 from __future__ import annotations
@@ -19,10 +31,11 @@ import torch.nn.functional as F
 from pilight.data import schema
 from pilight.data.colour import linear_to_srgb, srgb_to_linear, to_uint8
 from pilight.data.shards import intrinsics_dataset, make_loader
-from pilight.diffusion.schedule import sample_timesteps
+from pilight.diffusion.schedule import sample_timesteps, v_to_x0
 from pilight.eval.grids import labelled_grid
 from pilight.params import DOMAINS, IntrinsicsParams, SamplingParams
 from pilight.train.build import PREVIEW_SAMPLING, Stack, build_stack
+from pilight.train.map_losses import task_loss
 
 
 def domain_targets(batch: dict, domains: tuple[str, ...] = DOMAINS, albedo_space: str = "linear") -> torch.Tensor:
@@ -61,12 +74,57 @@ def masked_latent_mse(v_pred: torch.Tensor, v_tgt: torch.Tensor, m: torch.Tensor
     return F.mse_loss(v_pred * m, v_tgt * m)
 
 
+def augment(batch: dict, aug, generator: torch.Generator) -> dict:
+    """Flip and crop every map of a batch alike (intrinsics.augment); the flipped normals' x is negated,
+    so the truth stays the truth of the flipped image. Draws from ``generator`` only what it uses."""
+    keys = ("image", "mask", *DOMAINS)
+    out = dict(batch)
+    if aug.flip:
+        flip = torch.rand(batch["image"].shape[0], generator=generator) < 0.5
+        sign = torch.tensor([-1.0, 1.0, 1.0]).view(1, 3, 1, 1)
+        for k in keys:
+            x = batch[k]
+            fx = x.flip(-1) * sign.to(x.dtype) if k == "normal" else x.flip(-1)
+            out[k] = torch.where(flip.view(-1, 1, 1, 1).to(x.device), fx, x)
+    if aug.crop is not None:
+        h, w = batch["image"].shape[-2:]
+        if aug.crop > min(h, w):
+            raise ValueError(f"intrinsics.augment.crop {aug.crop} is larger than the images ({h}x{w})")
+        top = int(torch.randint(0, h - aug.crop + 1, (), generator=generator))
+        left = int(torch.randint(0, w - aug.crop + 1, (), generator=generator))
+        for k in keys:
+            out[k] = out[k][..., top : top + aug.crop, left : left + aug.crop]
+    return out
+
+
+def decoded_maps(pred: torch.Tensor, domains: tuple[str, ...], albedo_space: str) -> dict[str, torch.Tensor]:
+    """Decoded predictions (B, V, 3, H, W) in [-1, 1] -> linear maps, differentiable (for the task loss):
+    no clamp, normals not normalised (the angular loss does it), 1-channel maps the mean of their three."""
+    out = {}
+    for i, d in enumerate(domains):
+        y = pred[:, i]
+        if d in ("roughness", "metallic"):
+            out[d] = schema.from_model(d, y.mean(dim=1, keepdim=True))
+        elif d == "albedo":
+            a = schema.from_model(d, y)
+            out[d] = srgb_to_linear(a.clamp(0, 1)) if albedo_space == "srgb" else a
+        else:
+            out[d] = y
+    return out
+
+
 class IntrinsicsTask:
     """The stage-1 Task for pilight.train.loop.train."""
 
     def __init__(self, p: IntrinsicsParams, shard_dir: Path, *, seed: int, device: str = "cpu"):
         self.p, self.shard_dir, self.seed, self.device = p, Path(shard_dir), seed, device
-        self.stack: Stack = build_stack(p, num_domains=len(DOMAINS), cond_channels=None)
+        self.joint = p.layout == "joint"
+        V = len(DOMAINS)
+        self.stack: Stack = (
+            build_stack(p, num_domains=1, num_views=1, cond_channels=None, maps_per_item=V)
+            if self.joint
+            else build_stack(p, num_domains=V, cond_channels=None)
+        )
         self.samples_per_batch = p.train.batch_size
         self.preview = PREVIEW_SAMPLING
 
@@ -78,6 +136,18 @@ class IntrinsicsTask:
         ds.set_epoch(epoch)
         return make_loader(ds, self.p.train.batch_size, num_workers=self.p.train.num_workers, drop_last=True)
 
+    def _items(self, z: torch.Tensor, B: int) -> torch.Tensor:
+        """(B*V, C, h, w) per-domain latents -> the UNet's items: the same (domains) or (B, V*C, h, w) (joint)."""
+        return z.unflatten(0, (B, -1)).flatten(1, 2) if self.joint else z
+
+    def _domains(self, x: torch.Tensor, B: int) -> torch.Tensor:
+        """Inverse of ``_items``: UNet items -> (B*V, C, h, w)."""
+        return x.unflatten(1, (len(DOMAINS), -1)).flatten(0, 1) if self.joint else x
+
+    def _ids(self, B: int, dev) -> torch.Tensor:
+        V = len(DOMAINS)
+        return torch.zeros(B, dtype=torch.long, device=dev) if self.joint else torch.arange(V, device=dev).repeat(B)
+
     def loss(
         self, batch: dict, generator: torch.Generator, model: torch.nn.Module | None = None
     ) -> tuple[torch.Tensor, dict[str, float]]:
@@ -85,27 +155,49 @@ class IntrinsicsTask:
         s, V = self.stack, len(DOMAINS)
         model = s.model if model is None else model
         dev = next(s.model.parameters()).device
+        batch = augment(batch, self.p.augment, generator)
         image = schema.to_model("image", batch["image"]).to(dev)
         B = image.shape[0]
+        per_item = 1 if self.joint else V
         with torch.no_grad():
-            z0 = s.codec.encode(domain_targets(batch, DOMAINS, self.p.albedo_space).flatten(0, 1).to(dev))
-            z_cond = s.codec.encode(image).repeat_interleave(V, 0)
-        m = latent_mask(batch["mask"].to(dev), s.codec.factor).repeat_interleave(V, 0)
+            z_cond = s.codec.encode(image).repeat_interleave(per_item, 0)
+        ids = self._ids(B, dev)
+        if self.p.objective == "task":
+            return self._task_loss(batch, model, image, z_cond, ids, dev)
+        with torch.no_grad():
+            z0 = self._items(
+                s.codec.encode(domain_targets(batch, DOMAINS, self.p.albedo_space).flatten(0, 1).to(dev)), B
+            )
+        m = latent_mask(batch["mask"].to(dev), s.codec.factor).repeat_interleave(per_item, 0)
         # One timestep per sample, shared by its V domains: they denoise together.
         t = sample_timesteps(
             B, s.scheduler.config.num_train_timesteps, self.p.train.terminal_fraction, generator
-        ).repeat_interleave(V)
+        ).repeat_interleave(per_item)
         noise = torch.randn(z0.shape, generator=generator).to(dev)
         drop = (torch.rand(B, generator=generator) < self.p.train.cond_dropout).to(
             dev
         )  # CFG needs an unconditional model
         t = t.to(dev)
         x_t = s.scheduler.add_noise(z0, noise, t)
-        z_cond = z_cond * (~drop).repeat_interleave(V).to(z_cond.dtype)[:, None, None, None]
-        domain_ids = torch.arange(V, device=dev).repeat(B)
-        v = model(x_t, z_cond, t, domain_ids, condition_images=image, drop=drop)
+        z_cond = z_cond * (~drop).repeat_interleave(per_item).to(z_cond.dtype)[:, None, None, None]
+        v = model(x_t, z_cond, t, ids, condition_images=image, drop=drop)
         loss = masked_latent_mse(v.float(), s.scheduler.get_velocity(z0, noise, t).float(), m)
         return loss, {"mask_fraction": float(m.mean())}
+
+    def _task_loss(self, batch, model, image, z_cond, ids, dev) -> tuple[torch.Tensor, dict[str, float]]:
+        """objective: task: one evaluation at t = T-1 from a zero latent, x0 = -v decoded, task losses."""
+        s, B = self.stack, image.shape[0]
+        n = z_cond.shape[0]
+        t = torch.full((n,), s.scheduler.config.num_train_timesteps - 1, dtype=torch.long, device=dev)
+        x_t = torch.zeros(n, s.model.latent_channels, *z_cond.shape[-2:], device=dev, dtype=z_cond.dtype)
+        v = model(x_t, z_cond, t, ids, condition_images=image, drop=None)
+        x0 = v_to_x0(x_t, v.float(), s.alphas_cumprod(dev), t)
+        pred = s.codec.decode(self._domains(x0, B)).float().unflatten(0, (B, len(DOMAINS)))
+        maps = decoded_maps(pred, DOMAINS, self.p.albedo_space)
+        gt = {d: batch[d].to(dev).float() for d in DOMAINS}
+        mask = (batch["mask"].to(dev) > 0.5).float()
+        loss, terms = task_loss(maps, gt, mask, self.p.task_loss)
+        return loss, terms | {"mask_fraction": float(mask.mean())}
 
     @torch.no_grad()
     def predict(
@@ -120,6 +212,11 @@ class IntrinsicsTask:
         dev = next(s.model.parameters()).device
         x = schema.to_model("image", image).to(dev)
         B, V = x.shape[0], len(domains)
+        if self.joint:  # one item carries every map; a subset costs the same, and is picked afterwards
+            z0 = s.sample(s.codec.encode(x), self._ids(B, dev), x, 1, sp, generator)
+            pred = s.codec.decode(self._domains(z0, B)).float().unflatten(0, (B, len(DOMAINS)))
+            maps = targets_to_maps(pred, DOMAINS, self.p.albedo_space)
+            return {d: maps[d] for d in domains}
         z_cond = s.codec.encode(x).repeat_interleave(V, 0)
         ids = torch.tensor([DOMAINS.index(d) for d in domains], device=dev).repeat(B)
         z0 = s.sample(z_cond, ids, x, V, sp, generator)

@@ -39,7 +39,7 @@ def run_training_stage(
     from pilight.data.shards import read_index
     from pilight.train.build import ModelError, check_image_size, save_model
     from pilight.train.checkpoint import CheckpointError, run_identity
-    from pilight.train.loop import train
+    from pilight.train.loop import resolve_mixed_precision, train
 
     # Before the task is built: its model is initialised from the global RNG. Seeding after it
     # (as this function once did) gave every run different initial weights.
@@ -57,6 +57,8 @@ def run_training_stage(
         if described is not None:
             print(f"{name}: {described}")
         identity = run_identity(base.seed, section, p.model_dump(mode="json"), data)
+        # auto resolves per machine: a checkpoint trained in bf16 is not resumed in fp32, nor the reverse
+        identity["mixed_precision"] = resolve_mixed_precision(p.train.mixed_precision)[0]
         stats = train(task, p.train, checkpoints, live, seed=base.seed, identity=identity)
         from accelerate import PartialState
 

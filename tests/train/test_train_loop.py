@@ -243,8 +243,30 @@ def test_bf16_on_a_cpu_without_native_kernels_warns(tmp_path: Path, monkeypatch)
     import pilight.train.loop as loop
 
     monkeypatch.setattr(loop, "cpu_has_native_bf16", lambda: False)
-    with pytest.warns(UserWarning, match="without native bf16 kernels.*mixed_precision: fp32"):
+    with pytest.warns(UserWarning, match="without native bf16 kernels.*mixed_precision: auto or fp32"):
         train(ToyTask(), cfg(mixed_precision="bf16", steps=2), tmp_path / "c", None, progress=False)
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_auto_precision_takes_bf16_only_where_the_cpu_has_it(tmp_path: Path, monkeypatch, capsys, native: bool):
+    if torch.cuda.is_available():
+        pytest.skip("CPU-only behaviour")
+    import pilight.train.loop as loop
+
+    monkeypatch.setattr(loop, "cpu_has_native_bf16", lambda: native)
+    assert loop.resolve_mixed_precision("auto") == (
+        ("bf16", "auto: bf16 on a CPU with native bf16 kernels")
+        if native
+        else ("no", "auto: fp32 on a CPU without native bf16 kernels")
+    )
+    assert loop.resolve_mixed_precision("auto", cuda=True)[0] == "bf16"
+    AcceleratorState._reset_state(True)
+    out = train(ToyTask(), cfg(mixed_precision="auto", steps=6), tmp_path / "a", None, progress=False)
+    assert ("auto: bf16" if native else "auto: fp32") in capsys.readouterr().out  # says which it chose
+    AcceleratorState._reset_state(True)
+    same = "bf16" if native else "fp32"
+    ref = train(ToyTask(), cfg(mixed_precision=same, steps=6), tmp_path / "r", None, progress=False)
+    assert out["final_loss"] == ref["final_loss"]  # and trains exactly as that setting does
 
 
 def test_fp16_on_cpu_falls_back_to_fp32(tmp_path: Path):
