@@ -51,6 +51,17 @@ class _Section(BaseModel):
 
 class BaseParams(_Section):
     seed: int = Field(42, ge=0, description="root of every random draw in the pipeline")
+    train_seed: int | None = Field(
+        None,
+        ge=0,
+        description="seed of every stage after the shards (training, inference, sampling); null = seed. "
+        "Varying it reruns training on the same renders and shards (python -m pilight.seeds)",
+    )
+
+    @property
+    def training_seed(self) -> int:
+        """The seed of the stages after the shards: ``train_seed``, or ``seed`` when it is null."""
+        return self.seed if self.train_seed is None else self.train_seed
 
 
 class Range(_Section):

@@ -31,11 +31,11 @@ def body(args, base, p, ip) -> int:
 
     with fails_on(ModelError, FileNotFoundError, ValueError):
         index = read_index(args.shards)
-        task = IntrinsicsTask(p, args.shards, seed=base.seed)
+        task = IntrinsicsTask(p, args.shards, seed=base.training_seed)
         load_model(task.stack, args.model)
     task.stack.model.eval()
     with fails_on(ValueError, OSError):  # shards are read (and verified) while predicting; or a full disk
-        m = predict_intrinsics_splits(task, args.shards, index, args.out, ip, base.seed, task.stack.describe())
+        m = predict_intrinsics_splits(task, args.shards, index, args.out, ip, base.training_seed, task.stack.describe())
         atomic.write_json(args.metrics, m)
     print(
         f"infer_intrinsics: {m['images']} images, {m['seconds_per_image']:.3f} s/image ({ip.mode}, {ip.steps} steps, "

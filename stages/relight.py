@@ -40,12 +40,12 @@ def body(args, base, p, ip) -> int:
         index = read_index(args.shards)
         if not index["splits"].get(ip.split, {}).get("shards"):
             raise StageFailure(f"{args.shards}: the {ip.split} split has no shards")
-        task = RelightTask(p.model_copy(update={"conditions": "gt"}), args.shards, seed=base.seed)
+        task = RelightTask(p.model_copy(update={"conditions": "gt"}), args.shards, seed=base.training_seed)
         check_image_size(tuple(index["sizes"]["image"][:2]), task.stack.codec.factor, f"{args.shards}/index.json")
         load_model(task.stack, args.model)
         preds = optional_predictions(args.shards, args.pred, ip.split, "relight")
     task.stack.model.eval()
-    m = relight_split(task, args.shards, args.out, ip.split, ip, base.seed, preds, not args.no_flip_check)
+    m = relight_split(task, args.shards, args.out, ip.split, ip, base.training_seed, preds, not args.no_flip_check)
     atomic.write_json(args.metrics, m, sort_keys=True)
     print(
         f"relight: {m['pairs']} pairs, {m['seconds_per_pair']:.3f} s/pair ({ip.mode}, {ip.steps} steps, "

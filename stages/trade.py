@@ -37,15 +37,15 @@ def body(args, base, p1, ip1, p2, ip2, ev) -> int:
     from pilight.train.relight import RelightTask
 
     with fails_on(ModelError, FileNotFoundError, ValueError):
-        t1 = IntrinsicsTask(p1, args.shards, seed=base.seed)
+        t1 = IntrinsicsTask(p1, args.shards, seed=base.training_seed)
         load_model(t1.stack, args.intrinsics_model)
-        t2 = RelightTask(p2.model_copy(update={"conditions": "gt"}), args.shards, seed=base.seed)
+        t2 = RelightTask(p2.model_copy(update={"conditions": "gt"}), args.shards, seed=base.training_seed)
         load_model(t2.stack, args.relight_model)
         imgs, pairs, preds = trade.sweep_samples(args.shards, args.pred, ip2.split, ev.trade.images)
     t1.stack.model.eval()
     t2.stack.model.eval()
-    rows1, rows2 = trade.sweep_both(t1, imgs, ip1, t2, pairs, ip2, preds, ev.trade, base.seed)
-    grid = trade.lights_grid(t2, args.shards, ip2.split, ip2, base.seed, preds, ev.relight_lights)
+    rows1, rows2 = trade.sweep_both(t1, imgs, ip1, t2, pairs, ip2, preds, ev.trade, base.training_seed)
+    grid = trade.lights_grid(t2, args.shards, ip2.split, ip2, base.training_seed, preds, ev.relight_lights)
     conditions = "stage-1 predictions" if preds is not None else "ground-truth intrinsics"
     n1, n2 = len(imgs["key"]), len(pairs["key"])
     print(trade.write_trade(rows1, rows2, n1, n2, conditions, grid, args.metrics, args.plots, args.reports))

@@ -32,9 +32,9 @@ def body(args, base, p) -> int:
     return run_training_stage(
         "train_intrinsics",
         "intrinsics",
-        base,
+        base.model_copy(update={"seed": base.training_seed}),  # after the shards: base.train_seed (null = seed)
         p,
-        lambda: IntrinsicsTask(p, args.shards, seed=base.seed),
+        lambda: IntrinsicsTask(p, args.shards, seed=base.training_seed),
         shards=args.shards,
         data=[args.shards],
         out=args.out,

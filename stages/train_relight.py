@@ -41,9 +41,9 @@ def body(args, base, p) -> int:
     return run_training_stage(
         "train_relight",
         "relight",
-        base,
+        base.model_copy(update={"seed": base.training_seed}),  # after the shards: base.train_seed (null = seed)
         p,
-        lambda: RelightTask(p, args.shards, seed=base.seed, pred_dir=args.pred),
+        lambda: RelightTask(p, args.shards, seed=base.training_seed, pred_dir=args.pred),
         shards=args.shards,
         data=data,
         out=args.out,
