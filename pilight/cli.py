@@ -107,8 +107,9 @@ def _light_options(p: argparse.ArgumentParser) -> None:
         "--intensity",
         type=float,
         default=1.0,
-        help="multiplies every light (1 = a directional light at the training data's typical level, "
-        "or a ball/HDRI as stored)",
+        help="k: each light's level is k times the photo's own estimated light (1 keeps the photo's exposure); "
+        "with --absolute it multiplies the light as made (1 = a directional light at the training data's "
+        "typical level, or a ball/HDRI as stored)",
     )
 
 
@@ -179,6 +180,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("-o", "--out", type=Path, required=True, metavar="OUT")
     r.add_argument("--overwrite", action="store_true", help="redo outputs that are already complete")
     _light_options(r)
+    r.add_argument(
+        "--absolute",
+        action="store_true",
+        help="the lights' intensity is absolute, not relative to the photo's own light (a calibrated plate, "
+        "e.g. a gray ball photographed in the scene)",
+    )
     _model_options(r, "relight")
     b = sub.add_parser(
         "ball",
@@ -338,6 +345,12 @@ def _pipeline(args, stage: str, state=None):
     device = args.device
     if state is not None and device == "auto":  # one device per process: cuda:<local rank>, or the CPU
         device = str(state.device)
+    if args.models == Path("models"):  # the default: the pipeline's models/, else the shipped base
+        from pilight.base_model import default_models
+
+        args.models, note = default_models(args.models)
+        if note:
+            print(f"pilight: {note}", file=sys.stderr)
     try:
         pipe = PILightPipeline.from_pretrained(args.models, device=device, params=args.params)
     except ParamsError as exc:
@@ -346,6 +359,7 @@ def _pipeline(args, stage: str, state=None):
         raise CliError(str(exc)) from None
     # Only the checkout's own models/ are expected to match its params.yaml; another folder is
     # the user's choice and is used as its config.json says.
+    print(f"pilight: models: {args.models.resolve()}", file=sys.stderr)
     dvc_models = args.params.is_file() and args.models.resolve() == (args.params.resolve().parent / "models")
     if dvc_models and not (args.models / PIPELINE_FILE).is_file():
         try:
@@ -540,7 +554,7 @@ def cmd_relight(args) -> int:
         for p in todo:
             try:
                 photo = read_photo(p)
-                out = pipe.relight(photo, pending[p], name=str(p))
+                out = pipe.relight(photo, pending[p], name=str(p), absolute=args.absolute)
             except PhotoError as exc:
                 print(f"pilight: {exc}", file=sys.stderr)
                 failed += 1

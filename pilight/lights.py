@@ -17,9 +17,11 @@ trained with. Zero outside the disk, as in the rendered balls.
   the subject), its left quarter to the camera's left. ``--rotate DEG`` turns it about the
   vertical axis, clockwise seen from above: with +90 the light that came from the left comes
   from straight ahead.
-* ``--intensity`` multiplies any light. 1 means: for a direction, a surface facing the light gets
-  diffuse shading DIRECT_LEVEL (the middle of the training lights), plus an ambient AMBIENT; for a
-  ball or an HDRI, its values as stored.
+* ``--intensity`` k. By default (relative intensity, pilight.relight.intensity) only the light's shape
+  and colour are kept and its level becomes k times the photo's own estimated light: k = 1 keeps the
+  exposure. With ``--absolute`` it multiplies the light as made here: 1 means, for a direction, a
+  surface facing the light gets diffuse shading DIRECT_LEVEL (the middle of the training lights) plus
+  an ambient AMBIENT; for a ball or an HDRI, its values as stored (a calibrated plate).
 """
 
 from __future__ import annotations
@@ -56,6 +58,7 @@ class Light:
     name: str
     ball: torch.Tensor  # (3, S, S) linear gray ball
     description: str = ""
+    intensity: float = 1.0  # k: relative to the photo's own light in relative mode (pilight.relight.intensity)
 
 
 def _safe(name: str) -> str:
@@ -96,6 +99,7 @@ def directional(
         _safe(label + _suffix(intensity)),
         ball,
         f"distant light, azimuth {azimuth_deg:g} deg, elevation {elevation_deg:g} deg, intensity {intensity:g}",
+        intensity=intensity,
     )
 
 
@@ -127,6 +131,7 @@ def from_ball(ball, intensity: float = 1.0, size: int = BALL_SIZE, name: str = "
         _safe(f"ball-{Path(name).stem}{_suffix(intensity)}"),
         (t * _disk(size) * intensity).contiguous(),
         f"light ball {name}, intensity {intensity:g}",
+        intensity=intensity,
     )
 
 
@@ -173,6 +178,7 @@ def from_hdri(
         _safe(f"hdri-{Path(name).stem}{rot}{_suffix(intensity)}"),
         ball.contiguous(),
         f"HDRI {name}, rotated {rotate_deg:g} deg, intensity {intensity:g}",
+        intensity=intensity,
     )
 
 

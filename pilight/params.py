@@ -320,8 +320,15 @@ class CodecParams(_Section):
 
 
 class UNetParams(_Section):
-    init: Literal["scratch", "pretrained"] = "scratch"
-    path: str | None = Field(None, description="local SD2 / GeoWizard UNet folder for init: pretrained")
+    init: Literal["scratch", "pretrained", "base"] = Field(
+        "scratch",
+        description="scratch = random weights; pretrained = a local SD2 / GeoWizard UNet (the paper); base = the "
+        "shipped pilight-base model of this stage (pilight.base_model; the params must build its network)",
+    )
+    path: str | None = Field(
+        None,
+        description="init pretrained: a local UNet folder; init base: a pilight-base folder (null = the shipped one)",
+    )
     block_out_channels: tuple[int, ...] = (64, 128, 128)
     layers_per_block: int = Field(1, ge=1)
     attention_head_dim: int = Field(8, ge=1)
@@ -544,6 +551,12 @@ class RelightParams(ModelParams):
         description="S_calc of physics_first: lookup = the gray ball minus its Lambertian twin read at the "
         "normal (knows no roughness); ggx = a microfacet highlight of the ball's dominant light "
         "with the conditioning roughness and Fresnel (pilight.physics.specular_model)",
+    )
+    intensity: Literal["relative", "absolute"] = Field(
+        "absolute",
+        description="relative = the target light's level is k times the input's own estimated light (k = "
+        "level(ball_b) / level(ball_a) for rendered pairs; k = 1 keeps the exposure), in training and at test "
+        "(pilight.relight.intensity); absolute = the ball as rendered (the paper)",
     )
     identity_pairs: bool = Field(
         True,

@@ -37,6 +37,7 @@ from pilight import atomic
 from pilight.lights import Light
 from pilight.params import DOMAINS, SamplingParams
 from pilight.photo import Photo, as_photo, check_size, lcm, processing_size
+from pilight.relight.intensity import relative_light
 
 PIPELINE_FILE = "pipeline.json"
 STAGES = ("intrinsics", "relight")
@@ -264,15 +265,16 @@ class PILightPipeline:
         t2, s2 = load_stage(folder, "relight", dev)
         return cls(t1, t2, config, dev, {"intrinsics": s1, "relight": s2})
 
-    def save_pretrained(self, folder: str | Path) -> Path:
+    def save_pretrained(self, folder: str | Path, dtype: torch.dtype | None = None) -> Path:
         """``folder/intrinsics``, ``folder/relight`` (each model.safetensors + config.json, the layout
-        of the pipeline's models/) and ``folder/pipeline.json``; every file written, then renamed."""
+        of the pipeline's models/) and ``folder/pipeline.json``; every file written, then renamed.
+        ``dtype`` (e.g. torch.float16): the weights' storage type (they load back as float32)."""
         from pilight.train.build import save_model
 
         folder = Path(folder)
         for stage, task in (("intrinsics", self.intrinsics), ("relight", self.relight_task)):
             params = self.saved_params.get(stage) or task.p.model_dump(mode="json")
-            save_model(task.stack, folder / stage, params)
+            save_model(task.stack, folder / stage, params, dtype=dtype)
         atomic.write_json(folder / PIPELINE_FILE, self.config.to_json(), sort_keys=True)
         return folder
 
@@ -420,10 +422,15 @@ class PILightPipeline:
         resolution: int | None = None,
         intrinsics: DecompositionOutput | None = None,
         name: str = "<image>",
+        absolute: bool = False,
     ) -> RelightOutput:
         """A photo under each of ``lights``: stage 1 once (or ``intrinsics`` from ``decompose`` of the
         same photo at the same resolution), then stage 2 for all lights in batches of
-        ``relight_sampling.batch_size``."""
+        ``relight_sampling.batch_size``.
+
+        Intensity is relative by default: a light of intensity k gets k times the photo's own estimated
+        light (k = 1 keeps the exposure; pilight.relight.intensity). ``absolute``: the lights' balls as
+        they are (a calibrated plate)."""
         lights = [lights] if isinstance(lights, Light) else list(lights)
         if not lights:
             raise PipelineError("relight needs at least one light")
@@ -438,16 +445,18 @@ class PILightPipeline:
         cond = intrinsics.conditions
         s = self.config.ball_resolution
         balls = torch.stack([_resize(l.ball.float()[None], (s, s))[0] for l in lights]).clamp_min(0)
+        intensity = "absolute" if absolute else "relative"
+        given = balls if absolute else relative_light(balls, torch.tensor([float(l.intensity) for l in lights]))
         sp = self.config.relight_sampling
         outs: dict[str, list[torch.Tensor]] = {}
         for start in range(0, len(lights), sp.batch_size):
-            b = balls[start : start + sp.batch_size]
+            b = given[start : start + sp.batch_size]
             k = b.shape[0]
             rep = lambda t: t.expand(k, *t.shape[1:]).to(self.device)  # noqa: B023 (called within this iteration)
             batch = {"image_a": rep(x), "ball_b": b.to(self.device), "mask": rep(m)}
             intr = {d: rep(cond[d]) for d in DOMAINS}
             gen = torch.Generator().manual_seed(self.config.seed)
-            pred = self.relight_task.predict(batch, sp, gen, intr)
+            pred = self.relight_task.predict(batch, sp, gen, intr, intensity=intensity)
             for key, v in pred.items():
                 outs.setdefault(key, []).append(v.float().cpu())
         h, w = photo.size

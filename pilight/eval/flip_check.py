@@ -24,8 +24,9 @@ def flip_check(task, batches: list[dict], ip, seed: int, visible_above: float = 
         flipped = {k: v.clone() for k, v in intr.items()}
         flipped["normal"][:, 0] *= -1
         # The same generator seed for both: only the normals differ.
-        d = task.predict(batch, ip, torch.Generator().manual_seed(seed), intr)["diffuse"]
-        d_flip = task.predict(batch, ip, torch.Generator().manual_seed(seed), flipped)["diffuse"]
+        # absolute: the rendered ball as it is (the check is about D's sides, not its level)
+        d = task.predict(batch, ip, torch.Generator().manual_seed(seed), intr, intensity="absolute")["diffuse"]
+        d_flip = task.predict(batch, ip, torch.Generator().manual_seed(seed), flipped, intensity="absolute")["diffuse"]
         a.append(lr_asymmetry(d, intr["normal"], batch["mask"]))  # unflipped N classifies right/left-facing pixels
         b.append(lr_asymmetry(d_flip, intr["normal"], batch["mask"]))
     a, b = torch.cat(a), torch.cat(b)

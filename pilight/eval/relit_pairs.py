@@ -3,11 +3,20 @@ relit by the trained stage-2 model (DDIM or single-step, CFG; the relit image, D
 one batched pass), keyed by the pair key `<scene>_vNN_lAA_to_lBB`, and the light-following probes;
 ``relight_split`` runs them all, writes data/relit and returns what the run measured.
 
-Splits of data/relit: `<split>` (every pair, stage-1 predictions as conditions when the prediction
-folder holds the split: no ground-truth intrinsics at test time, else ground truth), `<split>_gt`
-(the cross-light pairs again with ground-truth conditions, when the first used predictions) and
-`probes` (PROBE_IMAGES test images under the probe lights: pilight.eval.light_following). With
-relight.physics_first the outputs also hold "albedo", the A_x of I_relit = A_x D + S.
+Splits of data/relit, per method and conditions (stage-1 predictions when the prediction folder
+holds the split: no ground-truth intrinsics at test time; else ground truth) and intensity (the
+evaluation's tiers, pilight.eval.relight):
+
+    <split>                 model, relative intensity, every pair (cross-light and identity)
+    <split>_gt              model, relative, cross-light pairs, ground-truth conditions (when <split> used predictions)
+    <split>_abs, <split>_gt_abs         the same with absolute intensity (the ball as rendered: the paper's setting)
+    <split>_anchor, <split>_gt_anchor, <split>_anchor_abs, <split>_gt_anchor_abs
+                            the physics-first anchor with zero gains (no network), the same four settings
+    probes                  PROBE_IMAGES test images under the probe lights (pilight.eval.light_following)
+
+Relative intensity tells the model k = r = level(ball_b) / level(ball_a) of the rendered pair, as a
+user states k (pilight.relight.intensity). With relight.physics_first the outputs also hold "albedo",
+the A_x of I_relit = A_x D + S.
 
 ``task`` is anything with ``predict(batch, sampling, generator, intrinsics)``, ``branches`` and
 ``describe()`` (pilight.train.relight's RelightTask); eval never imports pilight.train.
@@ -27,6 +36,7 @@ from pilight.data.shards import eval_dataset, make_loader
 from pilight.eval.flip_check import FLIP_CHECK_BATCHES, flip_check
 from pilight.eval.light_following import PROBE_LIGHTS, PROBE_SPLIT, cross_light, probe_batch, probe_key, select_probes
 from pilight.relight.conditions import PRED_DOMAINS, choose_intrinsics
+from pilight.relight.intensity import relative_pair
 
 PROBE_IMAGES = 12  # light-following probe images (the issue asks for at least 12)
 
@@ -65,11 +75,15 @@ def relit_pairs(
     preds: dict | None,
     cross_only: bool = False,
     stats: RunStats | None = None,
+    intensity: str = "relative",
+    method: str = "model",
 ):
     """(key, {branch: H x W x C}, meta JSON) of every pair of ``split`` (only the cross-light ones with
-    ``cross_only``), conditioned on ``conditions`` ("pred": ``preds``, "gt": ground truth)."""
+    ``cross_only``), conditioned on ``conditions`` ("pred": ``preds``, "gt": ground truth), with the
+    target light's ``intensity`` relative or absolute; ``method`` "anchor": the zero-gain physics anchor."""
     gen = torch.Generator().manual_seed(seed)
-    with tqdm(desc=f"relight {split} ({conditions} conditions)", unit="pair") as bar:
+    desc = f"relight {split} ({method}, {conditions} conditions, {intensity})"
+    with tqdm(desc=desc, unit="pair") as bar:
         for batch in make_loader(eval_dataset(shards, split, "relight"), ip.batch_size):
             if cross_only:
                 batch = cross_light(batch)
@@ -77,8 +91,9 @@ def relit_pairs(
                     continue
             B = len(batch["key"])
             intr = choose_intrinsics(batch, torch.full((B,), conditions == "pred"), preds)
+            given = relative_pair(batch) if intensity == "relative" else batch
             t0 = time.perf_counter()
-            out = task.predict(batch, ip, gen, intr)
+            out = task.predict(given, ip, gen, intr, intensity=intensity, zero_gains=method == "anchor")
             if stats is not None:
                 stats.add(batch, out, time.perf_counter() - t0)
             for i, key in enumerate(batch["key"]):
@@ -90,6 +105,8 @@ def relit_pairs(
                         "light_a": ma["light"],
                         "light_b": mb["light"],
                         "conditions": conditions,
+                        "intensity": intensity,
+                        "method": method,
                     },
                     sort_keys=True,
                 )
@@ -111,7 +128,7 @@ def relit_probes(task, shards: Path, split: str, ip, seed: int, preds: dict | No
             yield probe_key(probe, light), {"relit": out["relit"][i].cpu().numpy().transpose(1, 2, 0)}, meta
 
 
-def index_info(task, ip, split: str, source: str) -> dict:
+def index_info(task, ip, source: str, written: dict[str, str]) -> dict:
     """What data/relit's index records beside the splits: branches, sampling, conditions, the model's parts."""
     return {
         "branches": list(task.branches),
@@ -119,12 +136,31 @@ def index_info(task, ip, split: str, source: str) -> dict:
         "conditions": source,
         "condition_domains": list(PRED_DOMAINS),
         "parts": task.describe(),
-        "splits_written": {
-            split: f"every pair, {source} conditions",
-            f"{split}_gt": "cross-light pairs, ground-truth conditions",
-            PROBE_SPLIT: "probe images under the light-following probe lights",
-        },
+        "splits_written": written,
     }
+
+
+def relit_jobs(task, shards: Path, split: str, ip, seed: int, preds: dict | None, stats: RunStats):
+    """{split name: (generator, what it holds)}: the splits of the module docstring. The first one
+    (the model, relative, every pair) feeds ``stats``."""
+    source = "pred" if preds is not None else "gt"
+    anchor = task.describe().get("physics_first", False)
+    jobs = {}
+    for intensity, tail in (("relative", ""), ("absolute", "_abs")):
+        for method in ("model", "anchor") if anchor else ("model",):
+            mid = "_anchor" if method == "anchor" else ""
+            how = {"intensity": intensity, "method": method}
+            first = not jobs
+            jobs[f"{split}{mid}{tail}"] = (
+                relit_pairs(task, shards, split, ip, seed, source, preds, stats=stats if first else None, **how),
+                f"{method}, every pair, {source} conditions, {intensity} intensity",
+            )
+            if source == "pred":
+                jobs[f"{split}_gt{mid}{tail}"] = (
+                    relit_pairs(task, shards, split, ip, seed, "gt", preds, cross_only=True, **how),
+                    f"{method}, cross-light pairs, ground-truth conditions, {intensity} intensity",
+                )
+    return jobs
 
 
 def relight_split(
@@ -137,12 +173,12 @@ def relight_split(
     byte-deterministic."""
     source = "pred" if preds is not None else "gt"
     stats = RunStats(FLIP_CHECK_BATCHES)
-    run = lambda conditions, **kw: relit_pairs(task, shards, split, ip, seed, conditions, preds, **kw)
-    jobs = {split: run(source, stats=stats)}
-    if source == "pred":
-        jobs[f"{split}_gt"] = run("gt", cross_only=True)
+    described = relit_jobs(task, shards, split, ip, seed, preds, stats)
+    jobs = {name: gen for name, (gen, _) in described.items()}
     jobs[PROBE_SPLIT] = relit_probes(task, shards, split, ip, seed, preds)
-    out_index = write_predictions(out, jobs, index_info(task, ip, split, source))
+    written = {name: what for name, (_, what) in described.items()}
+    written[PROBE_SPLIT] = "probe images under the light-following probe lights"
+    out_index = write_predictions(out, jobs, index_info(task, ip, source, written))
     flip = {"pairs": 0, "note": "needs the diffuse branch (relight.decomposition: true)"}
     if check_flip and stats.first and "diffuse" in task.branches:
         flip = flip_check(task, stats.first, ip, seed)

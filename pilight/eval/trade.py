@@ -250,9 +250,9 @@ def sweep_relight(task, pairs: dict, intr: dict, ip, tp: TradeParams, seed: int,
         outs = []
         for s in range(0, n, ip.batch_size):
             sl = slice(s, s + ip.batch_size)
-            outs.append(
-                task.predict({k: v[sl] for k, v in pairs.items()}, sp, gen, {k: v[sl] for k, v in intr.items()})
-            )
+            batch, cond = {k: v[sl] for k, v in pairs.items()}, {k: v[sl] for k, v in intr.items()}
+            # absolute: the sweep grades sampling settings against the rendered targets, as it always has
+            outs.append(task.predict(batch, sp, gen, cond, intensity="absolute"))
         return torch.cat([o["relit"] for o in outs])
 
     def score(relit):
@@ -322,7 +322,7 @@ def lights_grid(task, shards: Path, split: str, ip, seed: int, preds: dict | Non
     shown = first_n(make_loader(eval_dataset(shards, split, "relight"), 8), RELIT_LIGHTS_ROWS, new_view)
     shown_intr = choose_intrinsics(shown, torch.full((len(shown["key"]),), preds is not None), preds)
     return relit_lights_grid(
-        lambda batch, c: task.predict(batch, ip, torch.Generator().manual_seed(seed), c),
+        lambda batch, c: task.predict(batch, ip, torch.Generator().manual_seed(seed), c, intensity="absolute"),
         [
             ({k: v[i : i + 1] for k, v in shown.items()}, {k: v[i : i + 1] for k, v in shown_intr.items()})
             for i in range(len(shown["key"]))

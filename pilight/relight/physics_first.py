@@ -107,8 +107,11 @@ def anchors(
     lambertian_a: torch.Tensor | None = None,
     smooth_cell: int = 1,
     specular: str = "lookup",
+    found: torch.Tensor | None = None,
 ) -> Anchors:
-    """The physics anchors of the target light b and the albedo A_x (module docstring)."""
+    """The physics anchors of the target light b and the albedo A_x (module docstring). ``ball_a`` given
+    with ``found`` (B,) bool: an estimate made by the caller (pilight.relight.intensity needs it first);
+    images not found keep the conditioning albedo."""
     n, m, a_c = intr["normal"].float(), intr["metallic"].float(), intr["albedo"].float()
     level = light_level(ball_b)
     sm = lambda x: cell_smooth(x, smooth_cell)
@@ -117,12 +120,11 @@ def anchors(
     if albedo_source == "conditioning":
         a_x = a_c
     elif albedo_source == "effective":
-        found = torch.ones(image_a.shape[0], dtype=torch.bool, device=image_a.device)
         if ball_a is None:  # the input's light, estimated from it (pilight.physics.source_light)
-            ball_a, found = estimate_source_balls(
-                image_a.float().cpu(), a_c.cpu(), n.cpu(), mask.float().cpu(), ball_b.shape[-1], m.cpu()
-            )
-            ball_a, found, lambertian_a = ball_a.to(image_a.device), found.to(image_a.device), None
+            ball_a, found = source_balls(image_a, intr, mask, ball_b.shape[-1])
+            lambertian_a = None
+        elif found is None:
+            found = torch.ones(image_a.shape[0], dtype=torch.bool, device=image_a.device)
         eps_a = EPS_LEVEL * light_level(ball_a)
         d_a = sm(diffuse_calculated(ball_a, n, mask, m))
         s_a = sm(_specular(ball_a, lambertian_a, intr, mask, specular))
@@ -132,6 +134,16 @@ def anchors(
     else:
         raise ValueError(f"albedo_source must be 'effective' or 'conditioning', got {albedo_source!r}")
     return Anchors(d_b, s_b, a_x, EPS_LEVEL * level, level)
+
+
+def source_balls(
+    image_a: torch.Tensor, intr: dict[str, torch.Tensor], mask: torch.Tensor, size: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The input's own light, estimated from it and the conditioning albedo, normals and metallic
+    (pilight.physics.source_light): (balls (B, 3, size, size), found (B,)) on the input's device."""
+    n, m, a_c = intr["normal"].float(), intr["metallic"].float(), intr["albedo"].float()
+    ball_a, found = estimate_source_balls(image_a.float().cpu(), a_c.cpu(), n.cpu(), mask.float().cpu(), size, m.cpu())
+    return ball_a.to(image_a.device), found.to(image_a.device)
 
 
 def gain_of(value: torch.Tensor, anchor: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:

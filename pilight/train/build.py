@@ -170,8 +170,10 @@ MODEL_FILE = "model.safetensors"
 CHECKSUM_FILE = "checksums.json"
 
 
-def save_model(stack: Stack, out_dir: Path, params: dict) -> None:
+def save_model(stack: Stack, out_dir: Path, params: dict, dtype: torch.dtype | None = None) -> None:
     """Weights, config.json, then checksums.json (sha256 of the weights, which load_model verifies).
+    ``dtype``: store floating tensors in it (float16 for the shipped base: half the bytes; load_model
+    copies them into the float32 model).
 
     Written last, so a crash between the files leaves new weights with the old checksum, which
     load_model reports as a mismatch rather than loading weights of unknown provenance."""
@@ -183,6 +185,8 @@ def save_model(stack: Stack, out_dir: Path, params: dict) -> None:
             f"{out_dir / MODEL_FILE}: not saved, the trained weights hold NaN/Inf "
             f"({', '.join(bad[:3])}{', ...' if len(bad) > 3 else ''})"
         )
+    if dtype is not None:
+        state = {k: t.to(dtype) if t.is_floating_point() else t for k, t in state.items()}
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic.write_with(out_dir / MODEL_FILE, lambda tmp: save_file(state, tmp))
     atomic.write_text(

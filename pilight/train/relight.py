@@ -64,6 +64,7 @@ from pilight.relight.branches import (
 )
 from pilight.relight.conditions import PRED_DOMAINS, choose_intrinsics, load_condition_predictions
 from pilight.relight.encoding import gain_decode, gain_encode, tonemap
+from pilight.relight.intensity import BALL_KEYS, relative_pair, to_source_level
 from pilight.relight.physics_terms import PHYSICS_SPACE, physics_terms
 from pilight.train.build import PREVIEW_SAMPLING, Stack, build_stack
 
@@ -141,15 +142,16 @@ class RelightTask:
         ds.set_epoch(epoch)
         return make_loader(ds, self.p.train.batch_size, num_workers=self.p.train.num_workers, drop_last=True)
 
-    def _ball(self, batch: dict) -> torch.Tensor:
+    def _ball(self, balls: dict) -> torch.Tensor:
+        """The ball D_calc of the physics terms unfolds (relight.ds_ball), from the target balls in use."""
         if self.p.ds_ball == "lambertian":
-            if "ball_lambertian_b" not in batch:
+            if "ball_lambertian_b" not in balls:
                 raise DataError(
                     "relight.ds_ball is 'lambertian' but the shards have no ball_lambertian "
                     "(render.lambertian_ball: true, then re-render)"
                 )
-            return batch["ball_lambertian_b"]
-        return batch["ball_b"]
+            return balls["ball_lambertian_b"]
+        return balls["ball_b"]
 
     def _input_offset(self, z_cond: torch.Tensor) -> torch.Tensor | None:
         """(B * V, C, h, w): z(I_in) on the relit items, 0 on the D/S items; None unless relit_target is residual.
@@ -193,31 +195,48 @@ class RelightTask:
         """Pixels per side of one physics-first output value: the codec cell with relit_resolution cell, else 1."""
         return self.stack.codec.factor if self.p.relit_resolution == "cell" else 1
 
-    def _conditions(self, batch: dict, intr: dict[str, torch.Tensor], dev) -> tuple[dict, pf.Anchors | None]:
-        """Condition maps (and, with physics_first, the physics anchors) of a pairs batch."""
-        image_a, mask, ball_b = batch["image_a"].to(dev), batch["mask"].to(dev), batch["ball_b"].to(dev)
-        if not self.physics_first:
-            return condition_images(image_a, intr, ball_b, mask, self.with_d_calc), None
-        rendered = self.p.albedo_source == "effective" and self.p.source_light == "rendered"
+    def _conditions(
+        self, batch: dict, intr: dict[str, torch.Tensor], dev, intensity: str | None = None
+    ) -> tuple[dict, pf.Anchors | None, dict[str, torch.Tensor]]:
+        """Condition maps, the physics anchors (physics_first) and the target balls in use, of a pairs batch.
+
+        ``intensity`` (default relight.intensity): relative = the batch's target balls are relative to
+        the input's own light and are scaled to its level (pilight.relight.intensity); absolute = as given."""
+        image_a, mask = batch["image_a"].to(dev), batch["mask"].to(dev)
+        balls = {k: batch[k].to(dev) for k in BALL_KEYS if k in batch}
+        rendered = self.physics_first and self.p.albedo_source == "effective" and self.p.source_light == "rendered"
         if rendered and "ball_a" not in batch:
             raise DataError(
                 "relight.source_light is 'rendered' but the batch has no ball_a (the input's own light "
                 "ball): re-shard with this version, or use source_light: estimated (a photo has no ball)"
             )
-        opt = lambda k: batch[k].to(dev) if k in batch and rendered else None
+        source = None  # the input's own light: (ball, found), when known or needed
+        if rendered:
+            source = (batch["ball_a"].to(dev), torch.ones(image_a.shape[0], dtype=torch.bool, device=dev))
+        elif (
+            self.physics_first and self.p.albedo_source == "effective" or (intensity or self.p.intensity) == "relative"
+        ):
+            source = pf.source_balls(image_a, intr, mask, balls["ball_b"].shape[-1])
+        if (intensity or self.p.intensity) == "relative":
+            balls = to_source_level(balls, *source)
+        ball_b = balls["ball_b"]
+        if not self.physics_first:
+            return condition_images(image_a, intr, ball_b, mask, self.with_d_calc), None, balls
+        effective = self.p.albedo_source == "effective"
         anc = pf.anchors(
             image_a,
             intr,
             mask,
             ball_b,
-            batch["ball_lambertian_b"].to(dev) if "ball_lambertian_b" in batch else None,
+            balls.get("ball_lambertian_b"),
             albedo_source=self.p.albedo_source,
-            ball_a=opt("ball_a"),
-            lambertian_a=opt("ball_lambertian_a"),
+            ball_a=source[0] if effective else None,
+            lambertian_a=batch["ball_lambertian_a"].to(dev) if rendered and "ball_lambertian_a" in batch else None,
             smooth_cell=self._cell,
             specular=self.p.specular_anchor,
+            found=source[1] if effective else None,
         )
-        return physics_first_images(image_a, intr, ball_b, mask, anc), anc
+        return physics_first_images(image_a, intr, ball_b, mask, anc), anc, balls
 
     def _physics_first_targets(self, batch: dict, anc: pf.Anchors, y_a: torch.Tensor, dev) -> torch.Tensor:
         """(B, 3, 3, H, W): relit gain off the mask (0 on it), g_D of D_eff, g_S of S_b (cell means at cell)."""
@@ -247,6 +266,8 @@ class RelightTask:
         model = s.model if model is None else model
         dev = next(s.model.parameters()).device
         B = batch["image_a"].shape[0]
+        if p.intensity == "relative":  # told r = level(ball_b) / level(ball_a), as a user states k
+            batch = relative_pair(batch)
         # Draw order (fixed, for exact resume): t, conditions source, CFG drop, noise.
         t = sample_timesteps(B, s.scheduler.config.num_train_timesteps, p.train.terminal_fraction, generator)
         use_pred = torch.rand(B, generator=generator) < self.pred_share
@@ -254,7 +275,7 @@ class RelightTask:
         intr = {k: v.to(dev) for k, v in choose_intrinsics(batch, use_pred, self.preds).items()}
         mask = batch["mask"].to(dev)
         with torch.no_grad():
-            maps, anc = self._conditions(batch, intr, dev)
+            maps, anc, balls = self._conditions(batch, intr, dev)
             z_cond = encode_conditions(s.codec, maps, self.layout, self.width)
             if anc is not None:
                 targets = self._physics_first_targets(batch, anc, maps["image"], dev)
@@ -298,9 +319,7 @@ class RelightTask:
         d_calc = None
         if p.decomposition:
             with torch.no_grad():
-                d_calc = diffuse_calculated(
-                    self._ball(batch).to(dev), batch["normal"].to(dev), mask, batch["metallic"].to(dev)
-                )
+                d_calc = diffuse_calculated(self._ball(balls), batch["normal"].to(dev), mask, batch["metallic"].to(dev))
         terms = physics_terms(
             y,
             albedo=albedo,
@@ -328,18 +347,31 @@ class RelightTask:
         sp: SamplingParams,
         generator: torch.Generator | None = None,
         intr: dict[str, torch.Tensor] | None = None,
+        *,
+        intensity: str | None = None,
+        zero_gains: bool = False,
     ) -> dict[str, torch.Tensor]:
         """Pairs batch -> linear HDR {relit, diffuse, specular} (B, 3, H, W), all branches in one batched pass
         (+ "albedo", the A_x of I = A_x D + S, with physics_first).
 
         `intr`: the intrinsics to condition on (default: the batch's ground truth); the mask and
-        the balls always come from the batch."""
+        the balls always come from the batch. ``intensity`` (default relight.intensity): relative = the
+        batch's target balls are relative balls (level k; pilight.relight.intensity), absolute = as they
+        are. ``zero_gains`` (physics_first only): the physics anchor alone, no network (its baseline)."""
         s, V = self.stack, self.V
         dev = next(s.model.parameters()).device
         intr = {d: (intr or batch)[d].to(dev) for d in PRED_DOMAINS}
         image_a = batch["image_a"].to(dev)
         B = image_a.shape[0]
-        maps, anc = self._conditions(batch, intr, dev)
+        maps, anc, _ = self._conditions(batch, intr, dev, intensity)
+        if zero_gains:
+            if anc is None:
+                raise ValueError(
+                    "zero_gains is the physics-first anchor; this model has no anchor (physics_first: false)"
+                )
+            zero = torch.zeros(B, V, 3, *image_a.shape[-2:], device=dev)
+            out = self._physics_first_outputs(zero, anc, maps["image"], batch["mask"].to(dev))
+            return {k: v.clamp(0, schema.HDR_MAX) for k, v in out.items()}
         z_cond = encode_conditions(s.codec, maps, self.layout, self.width)
         ids = torch.arange(V, device=dev).repeat(B)
         z0 = s.sample(z_cond, ids, maps["image"], V, sp, generator)
@@ -360,12 +392,17 @@ class RelightTask:
         """Rows: input | target | relit; then D_calc | D truth | D model and S_calc | S truth | S model
         (the first pair), labelled."""
         one = {k: v[:1] for k, v in batch.items()}
-        pred = self.predict(one, self.preview, torch.Generator().manual_seed(0))
+        pred = self.predict(
+            relative_pair(one) if self.p.intensity == "relative" else one,
+            self.preview,
+            torch.Generator().manual_seed(0),
+        )
         u8 = lambda x: to_uint8(x[0].cpu(), hdr=True)
         rows = [[u8(one["image_a"]), u8(one["image_b"]), u8(pred["relit"])]]
         labels = ["relit"]
         if "diffuse" in pred:
-            d_calc = diffuse_calculated(self._ball(one), one["normal"], one["mask"], one["metallic"])
+            balls = relative_pair(one) if self.p.intensity == "relative" else one
+            d_calc = diffuse_calculated(self._ball(balls), one["normal"], one["mask"], one["metallic"])
             rows.append([u8(d_calc), u8(one["diffuse_b"]), u8(pred["diffuse"])])
             rows.append([None, u8(one["specular_b"]), u8(pred["specular"])])
             labels += ["D", "S"]

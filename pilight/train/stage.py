@@ -35,6 +35,7 @@ def run_training_stage(
     import torch
 
     from pilight import atomic
+    from pilight.base_model import BaseModelError, init_from_base
     from pilight.data.schema import DataError
     from pilight.data.shards import read_index
     from pilight.train.build import ModelError, check_image_size, save_model
@@ -44,12 +45,14 @@ def run_training_stage(
     # Before the task is built: its model is initialised from the global RNG. Seeding after it
     # (as this function once did) gave every run different initial weights.
     torch.manual_seed(base.seed)
-    with fails_on(DataError, ModelError, OSError, ValueError, FloatingPointError):
+    with fails_on(DataError, ModelError, BaseModelError, OSError, ValueError, FloatingPointError):
         index = read_index(shards)
         if not index["splits"].get("train", {}).get("shards"):
             raise DataError(f"{shards}: the train split has no shards")
         task = make_task()
         check_image_size(tuple(index["sizes"]["image"][:2]), task.stack.codec.factor, f"{shards}/index.json")
+        if p.unet.init == "base":  # the shipped prior (pilight.base_model); checkpoints, when any, win below
+            print(f"{name}: starting from the base model {init_from_base(task.stack, p, section)}")
     # Damage found once training runs (a shard, a checkpoint, a diverged loss, a full disk) is a
     # message naming the file and exit 1, like damage found before it starts.
     with fails_on(DataError, ModelError, CheckpointError, FloatingPointError, OSError):
@@ -65,6 +68,12 @@ def run_training_stage(
         if not PartialState().is_main_process:  # every rank ends with the same weights; one writes them
             return 0
         save_model(task.stack, out, p.model_dump(mode="json"))
+        # On what the seconds in dvclive's metrics were measured (the model card and every timing table
+        # name it). Beside the metrics, not in `out`: the model's bytes must not change with the machine.
+        from pilight import machine
+
+        facts = machine.describe() | {"mixed_precision": identity["mixed_precision"]}
+        atomic.write_json(Path(live) / "machine.json", facts, sort_keys=True)
         if described is not None:
             atomic.write_json(out / "task.json", described, sort_keys=True)
     print(

@@ -427,7 +427,7 @@ def test_flip_check_tells_a_shading_that_follows_n_from_one_that_does_not(shards
         def __init__(self, follows_n):
             self.follows_n = follows_n
 
-        def predict(self, batch, sp, generator, intr):
+        def predict(self, batch, sp, generator, intr, intensity="absolute"):
             n = intr["normal"] if self.follows_n else batch["normal"]
             return {
                 "diffuse": diffuse_calculated(batch["ball_b"], n, batch["mask"], torch.zeros_like(batch["metallic"]))

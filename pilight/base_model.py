@@ -1,0 +1,109 @@
+"""pilight-base: the prior we train ourselves and ship in git (weights/pilight-base, made by base/dvc.yaml).
+
+It is a `save_pretrained` folder (intrinsics/ and relight/, each model.safetensors in half precision
++ config.json + checksums.json, and pipeline.json) with its model card beside it. Three uses:
+
+- ``unet.init: base`` in a stage's params: training starts from the shipped weights of that stage
+  (``init_from_base``), as the paper starts from GeoWizard. The params must build the same network
+  and give its outputs the same meaning: every key of ``MUST_MATCH`` is compared, and a difference
+  is an error naming the key, both values and the file.
+- ``pilight relight`` / ``decompose`` with no pipeline models/ use it (``default_models``).
+- the model card says what it is, what it saw and how well it does.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+BASE_DIR = Path(__file__).resolve().parents[1] / "weights" / "pilight-base"
+CARD = "MODEL_CARD.md"
+
+# The keys that decide a stage's network and what its outputs mean. Everything else (learning rate,
+# steps, loss weights, augmentations) may differ between the base and a fine-tune.
+_NETWORK = ("codec", "unet.block_out_channels", "unet.layers_per_block", "unet.attention_head_dim")
+_NETWORK += ("unet.cross_attention_dim", "conditioning.kind", "cross_batch_attention", "schedule")
+MUST_MATCH: dict[str, tuple[str, ...]] = {
+    "intrinsics": _NETWORK + ("layout", "albedo_space"),
+    "relight": _NETWORK
+    + (
+        "decomposition",
+        "relit_target",
+        "relit_resolution",
+        "physics_first",
+        "albedo_source",
+        "specular_anchor",
+        "d_calc_condition",
+        "ds_ball",
+    ),
+}
+
+
+class BaseModelError(ValueError):
+    """The shipped base is missing, damaged, or does not fit the params."""
+
+
+def _get(d: dict, dotted: str) -> Any:
+    for part in dotted.split("."):
+        if not isinstance(d, dict) or part not in d:
+            return "<absent>"
+        d = d[part]
+    return d
+
+
+def _flat(x: Any) -> Any:
+    return json.loads(json.dumps(x))  # tuples -> lists, as in a saved config
+
+
+def base_folder(stage: str, path: str | None = None) -> Path:
+    """The folder of one stage of the base: ``path`` (unet.path) when given, else the shipped one."""
+    return Path(path) / stage if path else BASE_DIR / stage
+
+
+def mismatches(stage: str, wanted: dict, saved: dict) -> list[str]:
+    """``key: base has X, params ask for Y`` for every MUST_MATCH key that differs."""
+    wanted, saved = _flat(wanted), _flat(saved)
+    return [
+        f"{stage}.{k}: the base has {_get(saved, k)!r}, the params ask for {_get(wanted, k)!r}"
+        for k in MUST_MATCH[stage]
+        if _get(saved, k) != _get(wanted, k)
+    ]
+
+
+def init_from_base(stack, p, stage: str) -> Path:
+    """Load the base's weights of ``stage`` into ``stack`` (built from params ``p``); returns the folder.
+    BaseModelError when the folder is missing or the params build another network."""
+    from pilight.train.build import ModelError, load_model
+
+    folder = base_folder(stage, p.unet.path)
+    cfg = folder / "config.json"
+    if not cfg.is_file():
+        raise BaseModelError(
+            f"{stage}.unet.init is 'base' but {cfg} does not exist: the shipped base lives in "
+            f"{BASE_DIR} (git), or set {stage}.unet.path to a folder holding {stage}/config.json"
+        )
+    try:
+        saved = json.loads(cfg.read_text(encoding="utf-8"))["params"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise BaseModelError(f"{cfg}: unreadable ({type(exc).__name__}: {exc})") from None
+    wrong = mismatches(stage, p.model_dump(mode="json"), saved)
+    if wrong:
+        raise BaseModelError(
+            f"{stage}.unet.init is 'base' but the params build another model than {folder}:\n  "
+            + "\n  ".join(wrong)
+            + "\nset these keys as the base has them, or use unet.init: scratch"
+        )
+    try:
+        load_model(stack, folder)
+    except ModelError as exc:
+        raise BaseModelError(f"{stage}.unet.init is 'base': {exc}") from None
+    return folder
+
+
+def default_models(models: Path) -> tuple[Path, str | None]:
+    """``models`` when it holds a pipeline's models; else the shipped base with a line saying so
+    (a fresh clone relights a photo without training anything)."""
+    if Path(models).is_dir() or not (BASE_DIR / "intrinsics" / "config.json").is_file():
+        return Path(models), None
+    return BASE_DIR, f"no {models}/ here: using the shipped base model {BASE_DIR} (see its {CARD})"

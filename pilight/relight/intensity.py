@@ -1,0 +1,52 @@
+"""Light intensity relative to the photo's own light (`relight.intensity: relative`, the default), or
+absolute (a calibrated plate).
+
+A single photo cannot tell albedo level from light power: twice the albedo under half the light is the
+same picture. So the product's question is "this photo, lit from the left, at the same exposure", not
+"under 12.5 W/m^2". In relative mode a target light is a RELATIVE ball: its shape and colour say where
+the light comes from, and its level k (pilight.physics.envmap.light_level) how strong it is relative to
+the input's own light, k = 1 keeping the photo's exposure. The model then uses
+
+    ball_b = relative ball x level(estimated light of the input)
+
+with the input's light estimated from the input and its conditioning intrinsics
+(pilight.physics.source_light), the same estimate the effective albedo A_eff is made with. In the
+physics-first ratio form I_relit = I_a (A_eff D_b + S_b) / (A_eff D_a + S_a) the albedo's level then
+cancels on diffuse pixels: albedo x 2 halves the estimated light, doubles A_eff and halves ball_b.
+What does not cancel is the dielectric highlight: F0 = 0.04 whatever the albedo, so S_b follows the
+estimated light's level (tests/relight/test_intensity.py measures both).
+
+For rendered pairs (shards) the truth's k is r = level(ball_b) / level(ball_a), so the relative ball is
+ball_b / level(ball_a) (``relative_pair``). For a user's light of intensity k, it is the light's ball
+scaled to level k (``relative_light``). An input whose light cannot be estimated (too few usable
+pixels) keeps the relative ball as an absolute one, and its conditioning albedo (physics_first).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from pilight.physics.envmap import light_level
+
+INTENSITIES = ("relative", "absolute")
+BALL_KEYS = ("ball_b", "ball_lambertian_b")  # the target light's balls in a pairs batch
+
+
+def relative_pair(batch: dict) -> dict:
+    """A pairs batch with its target balls made relative to the input's rendered light: ball_b / level(ball_a)."""
+    if "ball_a" not in batch:
+        raise KeyError("relative intensity of a rendered pair needs the input's own ball (ball_a) in the shards")
+    unit = light_level(batch["ball_a"])
+    return batch | {k: batch[k] / unit.to(batch[k].dtype) for k in BALL_KEYS if k in batch}
+
+
+def relative_light(ball: torch.Tensor, k: float | torch.Tensor) -> torch.Tensor:
+    """A user's light (B, 3, S, S) as a relative ball of level ``k`` (its shape and colour kept)."""
+    return ball / light_level(ball).to(ball.dtype) * torch.as_tensor(k, dtype=ball.dtype).reshape(-1, 1, 1, 1)
+
+
+def to_source_level(balls: dict[str, torch.Tensor], source: torch.Tensor, found: torch.Tensor) -> dict:
+    """Relative balls -> balls at the input's estimated light level (``source``: its estimated ball);
+    inputs not ``found`` keep them as they are."""
+    scale = torch.where(found[:, None, None, None], light_level(source), torch.ones_like(light_level(source)))
+    return {k: v * scale.to(v.dtype) for k, v in balls.items()}

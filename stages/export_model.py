@@ -1,0 +1,78 @@
+"""DVC stage `export` of the base pipeline (base/dvc.yaml): the trained models -> the shipped pilight-base.
+
+    python stages/export_model.py --params base/params.yaml --models base/models --out weights/pilight-base \\
+        --metrics base/metrics/evaluate.json base/metrics/evaluate_heldout.json --live base/dvclive
+
+Loads both stages as the photo pipeline does, stores their weights in half precision (both stages
+together within the 40 MB git budget; they load back as float32), writes pipeline.json from the
+params (processing resolution, samplers) and MODEL_CARD.md: what the base saw, how it was trained,
+how long on what machine, and its figures on both test splits beside their baselines. The folder is
+written under a temporary name and renamed, so a killed export leaves the old base whole.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from pathlib import Path
+
+from pilight.stage_cli import StageFailure, fails_on, run_stage
+
+MAX_BYTES = 40 * 1024 * 1024  # both stages' safetensors together: the shipped base lives in git
+
+
+def options(ap) -> None:
+    ap.add_argument("--models", type=Path, default=Path("base/models"))
+    ap.add_argument("--out", type=Path, default=Path("weights/pilight-base"))
+    ap.add_argument("--metrics", type=Path, nargs="*", default=[], help="evaluate.json of each test split")
+    ap.add_argument("--live", type=Path, default=None, help="dvclive folder of both training stages")
+
+
+def _read(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise StageFailure(f"{path}: unreadable ({exc})") from None
+
+
+def body(args, base, render, intrinsics, relight) -> int:
+    import torch
+
+    from pilight.base_model import CARD
+    from pilight.eval.model_card import model_card
+    from pilight.pipeline import PILightPipeline, PipelineError
+
+    with fails_on(PipelineError):
+        pipe = PILightPipeline.from_pretrained(args.models, device="cpu", params=args.params)
+    metrics = {p.stem: _read(p) for p in args.metrics}
+    training = {}
+    if args.live is not None:
+        for stage in ("intrinsics", "relight"):
+            d = args.live / stage
+            training[stage] = _read(d / "metrics.json") | {"machine": _read(d / "machine.json")}
+    tmp = args.out.with_name(f".{args.out.name}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    pipe.save_pretrained(tmp, dtype=torch.float16)
+    size = sum(f.stat().st_size for f in tmp.rglob("*.safetensors"))
+    if size > MAX_BYTES:
+        shutil.rmtree(tmp)
+        raise StageFailure(f"{args.out}: the weights take {size / 2**20:.1f} MB, over the 40 MB git budget")
+    card = model_card(base, render, intrinsics, relight, metrics=metrics, training=training, weights_bytes=size)
+    (tmp / CARD).write_text(card, encoding="utf-8")
+    old = args.out.with_name(f".{args.out.name}.old")
+    shutil.rmtree(old, ignore_errors=True)
+    if args.out.exists():
+        args.out.rename(old)
+    tmp.rename(args.out)
+    shutil.rmtree(old, ignore_errors=True)
+    print(f"export: {args.out} ({size / 2**20:.1f} MB of weights, float16) with {CARD}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_stage("export", __doc__, argv, ["base", "render", "intrinsics", "relight"], options, body)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
