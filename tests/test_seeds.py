@@ -130,7 +130,8 @@ def project(tmp_path, monkeypatch):
         (["--seeds", "42", "42"], "distinct"),
         (["--metrics-file", "metrics/nothing.json"], "no stage of dvc.yaml declares it"),
         (["--target", "nowhere"], "not a stage of dvc.yaml"),
-        (["--target", "train_intrinsics"], "metrics/evaluate.json is written by stage 'evaluate'"),
+        # the default metrics file (metrics/headline.json, or metrics/evaluate.json before it) is evaluate's
+        (["--target", "train_intrinsics"], ".json is written by stage 'evaluate', which --target train_intrinsics"),
     ],
 )
 def test_bad_command_lines_exit_2_before_anything_runs(project, argv, says, capsys):
@@ -154,6 +155,21 @@ def test_the_data_stages_are_render_and_shard(project):
     assert set(pipeline.seeded) == {"train_intrinsics", "infer_intrinsics", "train_relight", "relight", "trade"}
     assert pipeline.metrics["metrics/evaluate.json"] == "evaluate"
     assert pipeline.run_stages(["train_intrinsics"]) == {"render", "shard", "train_intrinsics"}
+
+
+@pytest.mark.parametrize("headline", [False, True])
+def test_the_default_metrics_are_the_headline_file_once_declared(project, headline):
+    dvc = yaml.safe_load((project / "dvc.yaml").read_text())
+    metrics = [m for m in dvc["stages"]["evaluate"]["metrics"] if "metrics/headline.json" not in m]
+    dvc["stages"]["evaluate"]["metrics"] = metrics + ([{"metrics/headline.json": {"cache": False}}] if headline else [])
+    (project / "dvc.yaml").write_text(yaml.safe_dump(dvc))
+    params = yaml.safe_load((project / "params.yaml").read_text())
+    _, files, keys, targets = seeds._resolve(seeds._parser().parse_args([]), seeds.read_pipeline(project), params)
+    assert targets == ["evaluate"]
+    if headline:
+        assert files == ["metrics/headline.json"] and keys == ["*"]
+    else:
+        assert files == ["metrics/evaluate.json"] and keys == list(seeds.DEFAULT_EVALUATE_KEYS)
 
 
 def test_the_runs_interleave_seeds_and_pass_the_base_seed_as_null(project):
