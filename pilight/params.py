@@ -15,7 +15,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationIn
 # The HDRIs Blender ships in datafiles/studiolights/world (no download needed).
 BUNDLED_HDRIS = ("city", "courtyard", "forest", "interior", "night", "studio", "sunrise", "sunset")
 SHAPES = ("sphere", "icosphere", "cube", "cylinder", "cone", "torus", "monkey")
-PROCEDURAL_TEXTURES = ("noise", "voronoi", "checker", "wave", "brick", "magic")
+PROCEDURAL_TEXTURES = ("noise", "voronoi", "checker", "wave", "brick", "magic")  # the default list
+# Also allowed in render.scene.textures (base-model variety); not in the default list, so its scenes keep their draws.
+EXTRA_TEXTURES = ("gradient", "gabor")
+MATERIAL_CLASSES = ("metal", "plastic", "rubber", "wood", "stone", "ceramic")  # pilight/render/material_classes.py
 ASSET_SUFFIXES = (".glb", ".gltf", ".obj", ".blend")
 
 
@@ -92,6 +95,13 @@ class SplitCounts(_Section):
     test: int = Field(ge=0)
 
 
+class DensityRange(Range):
+    """A range of a non-negative physical factor (an atmosphere's density, an intensity multiplier)."""
+
+    lo: float = Field(ge=0.0, le=100.0)
+    hi: float = Field(ge=0.0, le=100.0)
+
+
 class LightParams(_Section):
     """Light sampling, the paper's appendix (object data / scene data)."""
 
@@ -115,6 +125,22 @@ class LightParams(_Section):
     ambient: Range = Range(lo=0.01, hi=0.05)
     room_back_light_deg: float = Field(
         30.0, ge=0.0, le=90.0, description="room scenes: extra light behind the camera within +- this angle"
+    )
+    sky_probability: float = Field(
+        0.0,
+        ge=0.0,
+        le=1.0,
+        description="share of light conditions lit by Blender's procedural sky (multiple scattering) instead of "
+        "the point light and HDRI: its sun comes from the point light's drawn direction, at its irradiance",
+    )
+    sky_air: DensityRange = Field(
+        DensityRange(lo=0.8, hi=1.5), description="sky air density (Rayleigh: blue sky, reddened low sun); 1 = Earth"
+    )
+    sky_aerosol: DensityRange = Field(
+        DensityRange(lo=0.5, hi=4.0), description="sky aerosol (dust, haze: whiter sky, softer sun); 1 = Earth"
+    )
+    sky_sun_intensity: DensityRange = Field(
+        DensityRange(lo=0.7, hi=1.0), description="multiplier of the sun disc alone (thin cloud); 1 = physical"
     )
 
 
@@ -145,6 +171,37 @@ class HdriParams(_Section):
         return self
 
 
+class StretchParams(_Section):
+    """Anisotropic shapes: an object's size is multiplied per local axis by U[lo, hi]."""
+
+    probability: float = Field(0.0, ge=0.0, le=1.0, description="share of objects stretched; 0 = all uniform")
+    lo: float = Field(0.6, gt=0.0, le=10.0)
+    hi: float = Field(1.6, gt=0.0, le=10.0)
+
+    @model_validator(mode="after")
+    def _ordered(self) -> StretchParams:
+        if self.lo > self.hi:
+            raise ValueError(f"lo ({self.lo}) must not exceed hi ({self.hi})")
+        return self
+
+
+class MaterialClassWeights(_Section):
+    """Relative weights of the material classes (material_model: classes); they need not sum to 1."""
+
+    metal: float = Field(0.2, ge=0.0, le=1000.0)
+    plastic: float = Field(0.25, ge=0.0, le=1000.0)
+    rubber: float = Field(0.1, ge=0.0, le=1000.0)
+    wood: float = Field(0.15, ge=0.0, le=1000.0)
+    stone: float = Field(0.15, ge=0.0, le=1000.0)
+    ceramic: float = Field(0.15, ge=0.0, le=1000.0)
+
+    @model_validator(mode="after")
+    def _some_weight(self) -> MaterialClassWeights:
+        if sum(self.model_dump().values()) <= 0:
+            raise ValueError(f"at least one class needs a positive weight; classes: {list(MATERIAL_CLASSES)}")
+        return self
+
+
 class SceneParams(_Section):
     room_fraction: float = Field(
         0.5, ge=0.0, le=1.0, description="share of room/ground scenes; the rest are object scenes"
@@ -169,6 +226,14 @@ class SceneParams(_Section):
         description="share of (sub-)materials that are metal; textured metallic ranges are not (independent)",
     )
     modifier_probability: float = Field(0.5, ge=0.0, le=1.0, description="bevel / subdivision / displacement")
+    stretch: StretchParams = StretchParams()
+    material_model: Literal["uniform", "classes"] = Field(
+        "uniform",
+        description="uniform: colour, roughness and metal drawn independently (metallic_probability, "
+        "textured_probability); classes: each Principled material is a class (metal, plastic, ...) whose "
+        "colours, roughness, metal and patterns go together, drawn by material_classes' weights",
+    )
+    material_classes: MaterialClassWeights = MaterialClassWeights()
 
     @field_validator("shapes")
     @classmethod
@@ -181,9 +246,9 @@ class SceneParams(_Section):
     @field_validator("textures")
     @classmethod
     def _textures(cls, v: tuple[str, ...]) -> tuple[str, ...]:
-        bad = [s for s in v if s not in PROCEDURAL_TEXTURES]
+        bad = [s for s in v if s not in PROCEDURAL_TEXTURES + EXTRA_TEXTURES]
         if bad:
-            raise ValueError(f"unknown texture(s) {bad}; allowed: {list(PROCEDURAL_TEXTURES)}")
+            raise ValueError(f"unknown texture(s) {bad}; allowed: {list(PROCEDURAL_TEXTURES + EXTRA_TEXTURES)}")
         return v
 
 
@@ -407,6 +472,13 @@ class TrainParams(_Section):
         lt=1.0,
         description="exponential moving average of the weights, "
         "saved as the model (diffusers EMAModel, warmup (1+n)/(10+n)); 0 = off",
+    )
+    grad_share_every: int = Field(
+        0,
+        ge=0,
+        le=MAX_STEPS,
+        description="log each loss term's share of the gradient norm every N steps (stage 2; one backward "
+        "per term, pilight.train.grad_shares); 0 = off",
     )
     checkpoint_every: int = Field(200, ge=1)
     keep_checkpoints: int = Field(2, ge=1)

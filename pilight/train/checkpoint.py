@@ -194,7 +194,15 @@ def hash_files(paths: list[Path]) -> str:
 
 
 # Train keys that never change the weights of step k (steps: raising it continues the run).
-_NOT_IDENTITY = ("steps", "checkpoint_every", "keep_checkpoints", "log_every", "image_every", "num_workers")
+_NOT_IDENTITY = (
+    "steps",
+    "checkpoint_every",
+    "keep_checkpoints",
+    "log_every",
+    "image_every",
+    "num_workers",
+    "grad_share_every",
+)
 
 
 def run_identity(seed: int, section: str, params: dict[str, Any], data: list[Path]) -> dict[str, Any]:

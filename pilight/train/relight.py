@@ -67,6 +67,7 @@ from pilight.relight.encoding import gain_decode, gain_encode, tonemap
 from pilight.relight.intensity import BALL_KEYS, relative_pair, to_source_level
 from pilight.relight.physics_terms import PHYSICS_SPACE, physics_terms
 from pilight.train.build import PREVIEW_SAMPLING, Stack, build_stack
+from pilight.train.grad_shares import grad_shares
 
 
 class RelightTask:
@@ -96,6 +97,7 @@ class RelightTask:
         self.samples_per_batch = p.train.batch_size
         self.preview = PREVIEW_SAMPLING
         self.pred_share = {"gt": 0.0, "pred": 1.0, "mix": p.pred_probability}[p.conditions]
+        self._calls = 0  # loss() calls, for train.grad_share_every (logging only: no effect on the weights)
         self.preds = None
         if self.pred_share > 0:
             why = f"relight.conditions is {p.conditions!r}" + (
@@ -338,7 +340,14 @@ class RelightTask:
         terminal = (t == s.scheduler.config.num_train_timesteps - 1).to(dev, torch.float32)
         l_img = masked_mse(y[:, 0], tonemap(batch["image_b"].to(dev).float()), reduction="none")
         logs["l_image"] = float((l_img.detach() * terminal).sum() / terminal.sum().clamp_min(1))
-        return l_v + phys + p.lambda_image * (l_img * terminal).mean(), logs
+        l_image = p.lambda_image * (l_img * terminal).mean()
+        self._calls += 1
+        if p.train.grad_share_every and self._calls % p.train.grad_share_every == 0:
+            w = 1.0 / t.to(dev).float().clamp_min(p.t_min)  # each physics term as physics_loss weighs it
+            weighted = {k: (w * lam * terms[k]).mean() for k, lam in zip(("ds", "ps", "rec"), lambdas)}
+            shares = grad_shares({"vpred": l_v, **weighted, "image": l_image}, _trainable(self.stack.model))
+            logs.update(shares)
+        return l_v + phys + l_image, logs
 
     @torch.no_grad()
     def predict(
@@ -417,3 +426,7 @@ def _latent_channels(p: RelightParams) -> int:
         return int(json.loads((Path(p.codec.path) / "config.json").read_text()).get("latent_channels", 4))
     except (OSError, ValueError):
         return 4  # build_stack then reports the broken VAE folder itself
+
+
+def _trainable(model: torch.nn.Module) -> list[torch.nn.Parameter]:
+    return [prm for prm in model.parameters() if prm.requires_grad]
