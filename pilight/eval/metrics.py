@@ -4,7 +4,8 @@
 - normal: mean / median angular error in degrees and the share within 11.25, 22.5, 30 degrees
   (the paper's Table 7 layout);
 - roughness, metallic: mean absolute error over the mask.
-An empty mask gives NaN-free "n/a" (None), never a made-up number.
+An empty mask gives NaN-free "n/a" (None), never a made-up number. PSNR is capped at PSNR_CAP, so
+identical maps (the ground truth, a copy) give a finite, valid-JSON clamp value.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import torch
 from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
 
 NORMAL_THRESHOLDS = (11.25, 22.5, 30.0)
+PSNR_CAP = 100.0  # dB; identical images (copy input, reconstruction setting) would give inf, not valid JSON
 
 
 def _masked(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -24,11 +26,23 @@ def _masked(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 
 def masked_psnr(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> float | None:
-    """PSNR over the masked pixels of maps in [0, 1] (clamped), data range 1."""
+    """PSNR over the masked pixels (pooled over images) of maps in [0, 1] (clamped), data range 1,
+    capped at PSNR_CAP."""
     p, g = _masked(pred, mask), _masked(gt, mask)
     if p.numel() == 0:
         return None
-    return float(peak_signal_noise_ratio(p.clamp(0, 1), g.clamp(0, 1), data_range=1.0))
+    return min(float(peak_signal_noise_ratio(p.clamp(0, 1), g.clamp(0, 1), data_range=1.0)), PSNR_CAP)
+
+
+def masked_psnr_per_image(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """(B,) PSNR of each image over its masked pixels (maps clamped to [0, 1], data range 1), capped at
+    PSNR_CAP; NaN for an image with an empty mask."""
+    m = (mask > 0.5).expand_as(pred).to(torch.float64)
+    se = ((pred.clamp(0, 1) - gt.clamp(0, 1)).to(torch.float64) ** 2 * m).flatten(1).sum(1)
+    n = m.flatten(1).sum(1)
+    mse = se / n.clamp_min(1)
+    psnr = (10.0 * torch.log10(1.0 / mse)).clamp(max=PSNR_CAP)  # mse 0 -> inf -> the cap
+    return torch.where(n > 0, psnr, torch.full_like(psnr, float("nan")))
 
 
 def angular_errors(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -51,9 +65,6 @@ def normal_metrics(errors_deg: torch.Tensor) -> dict[str, float | None]:
 def masked_mae(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> float | None:
     p, g = _masked(pred, mask), _masked(gt, mask)
     return float((p - g).abs().mean()) if p.numel() else None
-
-
-PSNR_CAP = 100.0  # dB; identical images (copy input, reconstruction setting) would give inf, not valid JSON
 
 
 def psnr_per_image(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
