@@ -2,15 +2,18 @@
 
     python stages/evaluate.py
 
-Stage 1 (intrinsics) in the paper's Table 1 / Table 7 layout, and stage 2 (relighting: PSNR/SSIM in the
-relight and reconstruction settings beside "copy the input" and analytic A * D_calc, the A D + S residual,
-the flipped-normal check, light-following: change_r2 with stage-1 and with ground-truth conditions,
-direction and linearity of the probes, the physics-first identity) -> metrics.json (dvc metrics),
-reports/intrinsics.md, reports/relight.md, reports/intrinsics_grid.png (input | ground truth | prediction
-for each intrinsic) and reports/relight_grid.png (target ball | input | target | relit, then ground truth
-| model for D and S). LPIPS needs local backbone weights (`evaluate.lpips_backbone`), else it is null,
-with the reason. The relit predictions default to the `relit` folder beside the shards (data/relit);
-without it the relighting part is skipped and metrics.json says so.
+Stage 1 (intrinsics: the paper's Table 1 / Table 7 layout; albedo raw, si-PSNR, LMSE and light-invariance
+beside the input image; roughness and metallic beside the training mean and median) and stage 2
+(relighting in three tiers, absolute, relative and scale-invariant, each with copy, exposure-matched copy,
+physics anchor and oracles; the A D + S residual, the flipped-normal check, the probes' direction and
+linearity, the physics-first identity) -> metrics/evaluate.json (every figure, numbers only),
+metrics/headline.json (the figures two runs are compared on; pilight.eval.metrics_files),
+reports/intrinsics.md, reports/relight.md (the notes: spaces, conditions, why LPIPS is absent),
+reports/intrinsics_grid.png (input | ground truth | prediction for each intrinsic) and
+reports/relight_grid.png (target ball | input | target | relit, then ground truth | model for D and S).
+LPIPS needs local backbone weights (`evaluate.lpips_backbone`), else it is absent, with the reason in the
+reports. The relit predictions default to the `relit` folder beside the shards (data/relit); without it
+the relighting part is skipped (absent from the metrics, no relight report).
 """
 
 from __future__ import annotations
@@ -27,12 +30,27 @@ def options(ap) -> None:
     ap.add_argument("--pred", type=Path, default=Path("data/intrinsics_pred"))
     ap.add_argument("--relit", type=Path, default=None, help="relit pairs (default: <shards>/../relit)")
     ap.add_argument("--metrics", type=Path, default=Path("metrics/evaluate.json"))
+    ap.add_argument(
+        "--headline",
+        type=Path,
+        default=None,
+        help="headline figures (default: beside --metrics, its name's 'evaluate' replaced by 'headline', "
+        "else 'headline_' + its name)",
+    )
     ap.add_argument("--reports", type=Path, default=Path("reports"))
+
+
+def headline_path(metrics: Path) -> Path:
+    """metrics/evaluate.json -> metrics/headline.json, metrics/evaluate_heldout.json -> metrics/headline_heldout.json:
+    beside the metrics it summarises, so two evaluations (base/dvc.yaml's test and held-out) never share one."""
+    name = metrics.name
+    return metrics.with_name(name.replace("evaluate", "headline", 1) if "evaluate" in name else f"headline_{name}")
 
 
 def body(args, base, ev) -> int:
     from pilight.eval.intrinsics import intrinsics_report
     from pilight.eval.lpips import load_lpips
+    from pilight.eval.metrics_files import headline, numbers_only
     from pilight.eval.relight import relight_report
     from pilight.eval.reports import write_reports
 
@@ -44,8 +62,13 @@ def body(args, base, ev) -> int:
     intr, intr_md, intr_grid = intrinsics_report(args.shards, args.pred, "test", lpips, lpips_note, ev.grid_images)
     relight, relight_md, relight_grid = relight_report(args.shards, relit_dir, lpips, lpips_note, ev.grid_images)
     if relight_md is None:
-        print(f"evaluate: relighting skipped: {relight['skipped']}")
-    atomic.write_json(args.metrics, {"intrinsics": intr, "relight": relight}, sort_keys=True)
+        print(f"evaluate: relighting skipped: {relit_dir}/index.json not found (run the relight stage)")
+    metrics = numbers_only({"intrinsics": intr, "relight": relight})
+    atomic.write_json(args.metrics, metrics, sort_keys=True)
+    atomic.write_json(
+        args.headline or headline_path(args.metrics),
+        headline(metrics.get("intrinsics", {}), metrics.get("relight", {})),
+    )
     reports = {"intrinsics.md": intr_md, "intrinsics_grid.png": intr_grid}
     reports |= {"relight.md": relight_md, "relight_grid.png": relight_grid}
     for text in write_reports(args.reports, reports):

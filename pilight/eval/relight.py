@@ -1,28 +1,32 @@
-"""Stage-2 evaluation on a held-out split: relighting quality beside trivial baselines.
+"""Stage-2 evaluation on a held-out split: relighting in three tiers beside baselines and oracles.
 
-Images are compared TONE-MAPPED: y = schema.to_model(x) (fixed exposure, Reinhard, 1/2.2 power),
-then (y + 1) / 2 in [0, 1]; PSNR (data range 1) and SSIM (torchmetrics.functional, Gaussian 11x11)
-per image over the full frame (relighting is full-image, no mask; PSNR capped at 100 dB so identical
-images stay valid JSON), averaged over pairs. Two settings:
-relight (light a != light b) and reconstruction (a == b, the identity pairs).
+The tiers, methods and figures are pilight.eval.relight_tiers': ``absolute`` (the target ball as
+rendered, the paper's setting), ``relative`` (the model told r = level(ball_b) / level(ball_a), the
+product's setting, beside the exposure-matched copy I_a x r) and ``scale_invariant`` (each absolute
+image x its least-squares scale against the target on the mask, linear HDR). Per method: PSNR, SSIM
+(and LPIPS with local weights, `evaluate.lpips_backbone`; nothing is downloaded) of whole tone-mapped
+images in [0, 1] (u = (schema.to_model(x) + 1) / 2; PSNR capped at 100 dB so identical images stay
+valid JSON), change_r2 (pilight.eval.light_following) on the full image and on the mask, and the
+level sd (linear HDR, mask), over the cross-light pairs (relight) and the identity pairs
+(reconstruction) where the method's split holds them.
 
-Baselines:
-- copy input: I_relit = image a (what a model ignoring the target light scores);
-- analytic A * D_calc: ground-truth albedo times the Lambertian lookup of the TARGET ball with the
-  ground-truth normals, times (1 - metallic) as in training (no specular, no shadows, black background).
-Light-following (pilight.eval.light_following): change_r2 of every method on the full image and on
-the mask, over the cross-light pairs (copying scores 0, the ground truth 1).
-Light-following of the model with ground-truth conditions, and the probes' direction and
-linearity, come from the relit folder's `<split>_gt` and `probes` splits (``light_following``).
-The evaluate stage calls ``relight_report``: the split the relight stage wrote, or a skipped note.
-With physics_first, ``identity_residual_relative`` is sum |I_relit - A_x D - S| / sum |I_relit| on the
-mask, A_x being the albedo the model formed I_relit with (float16 EXRs: ~1e-3 at most).
-Also: the decomposition residual mean |I_relit - A D_pred - S_pred| (linear HDR, ground-truth A)
-of the model and of the ground truth (float16 shards: ~1e-3), PSNR of D_pred and S_pred, and the
-paper's appendix check on the analytic shading: flipping the x channel of N should flip which
-side of the image is brighter.
-LPIPS (tone-mapped, full image) only with local weights (`evaluate.lpips_backbone`), else null
-with the reason; nothing is downloaded.
+What the relight stage writes to the relit folder (pilight.eval.relit_pairs), per `<split>` of its
+index's sampling: `<split>` and `<split>_gt` (the model, relative intensity, stage-1 / ground-truth
+conditions), `<split>_abs` and `<split>_gt_abs` (absolute), `<split>_anchor`, `<split>_gt_anchor`,
+`<split>_anchor_abs`, `<split>_gt_anchor_abs` (the zero-gain physics anchor, same four settings) and
+`probes`. `<split>` and `<split>_abs` are required (a folder without `<split>_abs` predates relative
+intensity: rerun the relight stage); the others are scored where present (the anchor exists with
+relight.physics_first, the `_gt` splits when the model's conditions are stage-1 predictions). Each
+split present must hold every cross-light pair, and either every identity pair or none.
+
+Checks on the model's ABSOLUTE split (where its D and S are in the truth's units): the decomposition
+residual mean |I_relit - A D_pred - S_pred| (linear HDR, ground-truth A) of the model and of the
+ground truth (float16 shards: ~1e-3), PSNR of D_pred and S_pred, and with physics_first the identity
+``identity_residual_relative`` = sum |I_relit - A_x D - S| / sum |I_relit| on the mask, A_x being the
+albedo the model formed I_relit with (float16 EXRs: ~1e-3 at most). The paper's appendix check on the
+analytic shading: flipping the x channel of N should flip which side of the image is brighter. The
+probes' direction and linearity come from the relit folder's `probes` split (``light_following``).
+The evaluate stage calls ``relight_report``: the split the relight stage wrote, or nothing.
 """
 
 from __future__ import annotations
@@ -39,20 +43,30 @@ from pilight.data.schema import DataError
 from pilight.data.shards import eval_dataset, make_loader
 from pilight.eval.grids import labelled_grid
 from pilight.eval.light_following import (
+    PROBE_AZIMUTH_DEG,
+    PROBE_ELEVATION_DEG,
     PROBE_SPLIT,
-    ChangeR2,
-    cross_light,
     lr_asymmetry,
     probe_key,
     probe_scores,
     select_probes,
 )
-from pilight.eval.metrics import psnr_per_image, ssim_per_image
+from pilight.eval.metrics import PSNR_CAP, psnr_per_image
+from pilight.eval.relight_tiers import (
+    SPACES,
+    TIER_METHODS,
+    TIERS,
+    MethodScores,
+    exposure_matched_copy,
+    strongest_baseline,
+    tier_image,
+)
 from pilight.physics import compose
 from pilight.physics.calculated import diffuse_calculated
 
-METHODS = ("model", "copy_input", "analytic_ad")
 PROBE_COUNT_MAX = 64  # probes are re-selected in shard order; those the relight stage relit are scored
+ABSOLUTE, RELATIVE = "_abs", ""  # the model's split suffixes; the checks and the grid use ABSOLUTE
+FULL_MAPS = ("relit", "diffuse", "specular", "albedo")  # read from the model's absolute split; "relit" elsewhere
 
 
 def grid_row(
@@ -75,38 +89,83 @@ def grid_row(
 GRID_COLUMNS = ("target ball", "input", "target", "model relit", "D truth", "D model", "S truth", "S model")
 
 
-def evaluate_relight(
-    shard_dir: Path, relit_dir: Path, split: str = "test", lpips=None, lpips_note: str = "", grid_pairs: int = 0
-) -> dict:
-    """Metrics (see the module docstring); with ``grid_pairs`` > 0 also "grid": that many cross-light
-    pairs as a labelled uint8 image, columns as in GRID_COLUMNS."""
-    relit = read_predictions(Path(relit_dir), split)
-    info = json.loads((Path(relit_dir) / "index.json").read_text())
-    rows: dict[str, dict[str, list[torch.Tensor]]] = {s: {} for s in ("relight", "reconstruction")}
-    resid = {"model": [], "ground_truth": []}
+def _read_relit(relit_dir: Path, split: str, maps: tuple[str, ...]) -> dict[str, dict[str, np.ndarray]]:
+    """key -> {map: H x W x C} of one relit split, keeping only ``maps`` (eight splits stay small)."""
+    return {k: {m: v[m] for m in maps if m in v} for k, v in read_predictions(relit_dir, split).items()}
+
+
+def _stack(preds: dict, keys: list[str], name: str = "relit") -> torch.Tensor:
+    return torch.stack([torch.from_numpy(preds[k][name]).permute(2, 0, 1) for k in keys])
+
+
+def baseline_image(method, b: dict) -> torch.Tensor:
+    """The linear HDR images of a method formed from the pairs of batch ``b`` themselves (no relit split)."""
+    if method.name == "copy_input":
+        return b["image_a"]
+    if method.name == "exposure_matched_copy":
+        return exposure_matched_copy(b["image_a"], b["ball_a"], b["ball_b"])
+    if method.name == "analytic_ad":  # no specular, no shadows, black background
+        return b["albedo"] * diffuse_calculated(b["ball_b"], b["normal"], b["mask"], b["metallic"])
+    raise ValueError(f"no image for method {method.name!r}")
+
+
+def evaluate_relight(shard_dir: Path, relit_dir: Path, split: str = "test", lpips=None, grid_pairs: int = 0) -> dict:
+    """Metrics (see the module docstring), numbers only; with ``grid_pairs`` > 0 also "grid": that many
+    cross-light pairs of the model's absolute split as a labelled uint8 image, columns as in GRID_COLUMNS."""
+    relit_dir = Path(relit_dir)
+    written = set(json.loads((relit_dir / "index.json").read_text())["splits"])
+    for need in (split + RELATIVE, split + ABSOLUTE):
+        if need not in written:
+            raise DataError(
+                f"{relit_dir}: no `{need}` split (it has {sorted(written)}); a folder without `{split}{ABSOLUTE}` "
+                "predates relative intensity: rerun the relight stage"
+            )
+    suffixes = sorted({m.split_suffix for ms in TIER_METHODS.values() for m in ms if m.split_suffix is not None})
+    relit = {
+        sfx: _read_relit(relit_dir, split + sfx, FULL_MAPS if sfx == ABSOLUTE else ("relit",))
+        for sfx in suffixes
+        if split + sfx in written
+    }
+    scores: dict[str, dict[str, MethodScores]] = {t: {} for t in TIERS}
+    identity_held = {sfx: 0 for sfx in relit}
+    rows: dict[str, list[torch.Tensor]] = {k: [] for k in ("diffuse", "specular", "model", "ground_truth")}
     flip_a, flip_b = [], []
     grid_rows: list[list[np.ndarray]] = []
-    change: dict[str, ChangeR2] = {}
     identity = {"abs": 0.0, "ref": 0.0}
-    n = 0
+    n = n_cross = 0
     for b in make_loader(eval_dataset(shard_dir, split, "relight"), 8):
         keys = b["key"]
-        missing = [k for k in keys if k not in relit]
-        if missing:
-            raise DataError(
-                f"{relit_dir}: no relit prediction for pair(s) {missing[:3]}; rerun the relight stage "
-                "on the current shards"
-            )
-        pred = {
-            k: torch.stack([torch.from_numpy(relit[key][k]).permute(2, 0, 1) for key in keys])
-            for k in ("relit", "diffuse", "specular", "albedo")
-            if k in relit[keys[0]]
-        }
-        same = torch.tensor(
-            [json.loads(a)["light"] == json.loads(c)["light"] for a, c in zip(b["meta_a"], b["meta_b"])]
+        cross = torch.tensor(
+            [json.loads(a)["light"] != json.loads(c)["light"] for a, c in zip(b["meta_a"], b["meta_b"])]
         )
+        held = {}
+        for sfx, preds in relit.items():
+            held[sfx] = torch.tensor([k in preds for k in keys])
+            lacking = [k for k, c, h in zip(keys, cross, held[sfx]) if c and not h]
+            if lacking:
+                raise DataError(
+                    f"{relit_dir}: no `{split}{sfx}` prediction for cross-light pair(s) {lacking[:3]}; rerun the "
+                    "relight stage on the current shards"
+                )
+            identity_held[sfx] += int((held[sfx] & ~cross).sum())
+        for tier, methods in TIER_METHODS.items():
+            for m in methods:
+                if m.split_suffix is None:
+                    sel = torch.ones(len(keys), dtype=torch.bool)
+                    img = baseline_image(m, b)
+                elif m.split_suffix in relit:
+                    sel = held[m.split_suffix]
+                    img = _stack(relit[m.split_suffix], [k for k, h in zip(keys, sel) if h])
+                else:
+                    continue  # not written this run (module docstring)
+                target, mask = b["image_b"][sel], b["mask"][sel]
+                scores[tier].setdefault(m.name, MethodScores()).update(
+                    tier_image(tier, img, target, mask), target, b["image_a"][sel], mask, cross[sel], lpips
+                )
+        own = relit[ABSOLUTE]
+        pred = {k: _stack(own, keys, k) for k in FULL_MAPS if k in own[keys[0]]}
         d_calc = diffuse_calculated(b["ball_b"], b["normal"], b["mask"], b["metallic"])
-        for i in torch.nonzero(~same).flatten().tolist()[: max(0, grid_pairs - len(grid_rows))]:
+        for i in torch.nonzero(cross).flatten().tolist()[: max(0, grid_pairs - len(grid_rows))]:
             grid_rows.append(
                 grid_row(
                     b["ball_b"][i],
@@ -117,31 +176,17 @@ def evaluate_relight(
                     b["specular_b"][i],
                 )
             )
-        gt, u_in = tonemap01(b["image_b"]), tonemap01(b["image_a"])
-        cands = {"model": pred["relit"], "copy_input": b["image_a"], "analytic_ad": b["albedo"] * d_calc}
-        for name, img in cands.items():
-            p = tonemap01(img)
-            if (~same).any():
-                change.setdefault(name, ChangeR2()).update(p[~same], gt[~same], u_in[~same], b["mask"][~same])
-            for setting, sel in (("relight", ~same), ("reconstruction", same)):
-                if sel.any():
-                    r = rows[setting].setdefault(name, {"psnr": [], "ssim": [], "lpips": []})
-                    r["psnr"].append(psnr_per_image(p[sel], gt[sel]))
-                    r["ssim"].append(ssim_per_image(p[sel], gt[sel]))
-                    if lpips is not None:
-                        r["lpips"].append(lpips(p[sel], gt[sel]))
         if "diffuse" in pred:
             for k, g in (("diffuse", b["diffuse_b"]), ("specular", b["specular_b"])):
-                r = rows.setdefault("components", {}).setdefault(k, {"psnr": []})
-                r["psnr"].append(psnr_per_image(tonemap01(pred[k]), tonemap01(g)))
+                rows[k].append(psnr_per_image(tonemap01(pred[k]), tonemap01(g)))
             res = (pred["relit"] - compose(b["albedo"], pred["diffuse"], pred["specular"])).abs()
-            resid["model"].append(res.flatten(1).mean(1))
+            rows["model"].append(res.flatten(1).mean(1))
             if "albedo" in pred:  # physics_first: the identity with the albedo the model formed I_relit with
                 m = b["mask"].expand_as(pred["relit"]) > 0.5
-                own = (pred["relit"] - compose(pred["albedo"], pred["diffuse"], pred["specular"])).abs()
-                identity["abs"] += float(own[m].sum())
+                formed = (pred["relit"] - compose(pred["albedo"], pred["diffuse"], pred["specular"])).abs()
+                identity["abs"] += float(formed[m].sum())
                 identity["ref"] += float(pred["relit"].abs()[m].sum())
-        resid["ground_truth"].append(
+        rows["ground_truth"].append(
             (b["image_b"] - compose(b["albedo"], b["diffuse_b"], b["specular_b"])).abs().flatten(1).mean(1)
         )
         flipped = b["normal"].clone()
@@ -151,36 +196,33 @@ def evaluate_relight(
             lr_asymmetry(diffuse_calculated(b["ball_b"], flipped, b["mask"], b["metallic"]), b["normal"], b["mask"])
         )
         n += len(keys)
+        n_cross += int(cross.sum())
     if n == 0:
         raise DataError(f"{shard_dir}: the {split} split has no relighting pairs")
-    mean = lambda xs: float(torch.cat(xs).float().mean()) if xs else None
-    out: dict = {
-        "pairs": n,
-        "conditions": info.get("conditions"),
-        "sampling": info.get("sampling"),
-        "space": "tone-mapped: (schema.to_model(x) + 1) / 2, full image",
-        "lpips_note": lpips_note,
-    }
-    for setting in ("relight", "reconstruction"):
-        out[setting] = {
-            name: {m: mean(v) for m, v in r.items()} | {"pairs": len(torch.cat(r["psnr"]))}
-            for name, r in rows[setting].items()
-        }
-    out["change_r2"] = {name: c.compute() for name, c in change.items()}
-    out["identity_residual_relative"] = identity["abs"] / identity["ref"] if identity["ref"] > 0 else None
-    out["light_following"] = light_following(shard_dir, relit_dir, split)
-    out["components_psnr"] = {k: mean(r["psnr"]) for k, r in rows.get("components", {}).items()}
-    out["residual_abs_mean"] = {k: mean(v) for k, v in resid.items()}
+    for sfx, count in identity_held.items():
+        if 0 < count < n - n_cross:
+            raise DataError(
+                f"{relit_dir}: `{split}{sfx}` holds {count} of the {n - n_cross} identity pairs (all or none); "
+                "rerun the relight stage"
+            )
+    mean = lambda xs: float(torch.cat(xs).float().mean())
+    out: dict = {"pairs": n, "cross_light_pairs": n_cross, "identity_pairs": n - n_cross}
+    out |= {tier: {name: s.compute() for name, s in methods.items()} for tier, methods in scores.items()}
+    if identity["ref"] > 0:
+        out["identity_residual_relative"] = identity["abs"] / identity["ref"]
+    if following := light_following(shard_dir, relit_dir, split):
+        out["light_following"] = following
+    out["components_psnr"] = {k: mean(rows[k]) for k in ("diffuse", "specular") if rows[k]}
+    out["residual_abs_mean"] = {k: mean(rows[k]) for k in ("model", "ground_truth") if rows[k]}
     a, c = torch.cat(flip_a), torch.cat(flip_b)
     lit = a.abs() > 0.01  # pairs with a visible left/right difference
     out["flip_check_d_calc"] = {
         "mean_abs_asymmetry_with_n": float(a.abs().mean()),
         "mean_abs_asymmetry_flipped": float(c.abs().mean()),
-        "sign_flipped_fraction": float(((a * c) < 0)[lit].float().mean()) if lit.any() else None,
         "pairs_considered": int(lit.sum()),
-        "what": "(R - L) / (R + L) of masked D_calc over right-/left-facing pixels (n_x > 0.2 / < -0.2 of the "
-        "unflipped N); flipping N_x should flip the sign",
     }
+    if lit.any():
+        out["flip_check_d_calc"]["sign_flipped_fraction"] = float(((a * c) < 0)[lit].float().mean())
     if grid_rows:
         out["grid"] = labelled_grid(grid_rows, list(GRID_COLUMNS[: len(grid_rows[0])]))
     return out
@@ -189,94 +231,117 @@ def evaluate_relight(
 def relight_report(
     shard_dir: Path, relit_dir: Path, lpips=None, lpips_note: str = "", grid_pairs: int = 0
 ) -> tuple[dict, str | None, np.ndarray | None]:
-    """(metrics, markdown table, grid) of what the relight stage wrote to ``relit_dir``, on the split its
+    """(metrics, markdown tables, grid) of what the relight stage wrote to ``relit_dir``, on the split its
     index records (``evaluate_relight``). Without ``relit_dir``/index.json (the relight stage has not run)
-    the metrics are {"skipped": why} and there is no table or grid, so evaluate still reports stage 1."""
+    the metrics are {} and there is no table or grid, so evaluate still reports stage 1."""
     index = Path(relit_dir) / "index.json"
     if not index.is_file():
-        return {"skipped": f"{relit_dir}/index.json not found (run the relight stage)"}, None, None
-    split = json.loads(index.read_text()).get("sampling", {}).get("split", "test")
-    result = evaluate_relight(shard_dir, relit_dir, split, lpips=lpips, lpips_note=lpips_note, grid_pairs=grid_pairs)
+        return {}, None, None
+    info = json.loads(index.read_text())
+    split = info.get("sampling", {}).get("split", "test")
+    result = evaluate_relight(shard_dir, relit_dir, split, lpips=lpips, grid_pairs=grid_pairs)
     grid = result.pop("grid", None)
-    return result, markdown_table(result, split), grid
+    return result, markdown_table(result, split, info, lpips_note), grid
 
 
 def light_following(shard_dir: Path, relit_dir: Path, split: str) -> dict:
-    """change_r2 of the model with ground-truth conditions (the relit folder's `<split>_gt`), and the
-    probes' direction and linearity (its `probes`), where the relight stage wrote them."""
+    """The probes' direction and linearity (pilight.eval.light_following), numbers only, where the relight
+    stage wrote its `probes` split; {} otherwise. (change_r2 with ground-truth conditions is the tiers'
+    ``model_gt``.)"""
     index = json.loads((Path(relit_dir) / "index.json").read_text())
-    out: dict = {}
-    if f"{split}_gt" in index["splits"]:
-        relit = read_predictions(Path(relit_dir), f"{split}_gt")
-        r2 = ChangeR2()
-        for b in make_loader(eval_dataset(shard_dir, split, "relight"), 8):
-            b = cross_light(b)
-            if b is None:
-                continue
-            missing = [k for k in b["key"] if k not in relit]
-            if missing:
-                raise DataError(
-                    f"{relit_dir}: no {split}_gt prediction for pair(s) {missing[:3]}; rerun the relight stage"
-                )
-            pred = torch.stack([torch.from_numpy(relit[k]["relit"]).permute(2, 0, 1) for k in b["key"]])
-            r2.update(tonemap01(pred), tonemap01(b["image_b"]), tonemap01(b["image_a"]), b["mask"])
-        out["change_r2_gt_conditions"] = r2.compute()
-    if PROBE_SPLIT in index["splits"]:
-        probes = select_probes(make_loader(eval_dataset(shard_dir, split, "relight"), 8), PROBE_COUNT_MAX)
-        relit = read_predictions(Path(relit_dir), PROBE_SPLIT)
-        probes = [p for p in probes if probe_key(p, "target") in relit]
-        out |= probe_scores(relit, probes)
-    return out
+    if PROBE_SPLIT not in index["splits"]:
+        return {}
+    probes = select_probes(make_loader(eval_dataset(shard_dir, split, "relight"), 8), PROBE_COUNT_MAX)
+    relit = read_predictions(Path(relit_dir), PROBE_SPLIT)
+    probes = [p for p in probes if probe_key(p, "target") in relit]
+    return {k: v for k, v in probe_scores(relit, probes).items() if isinstance(v, int | float)}
 
 
-def markdown_table(result: dict, split: str) -> str:
+COLUMNS = (  # (figure, column heading); LPIPS columns join when a figure has them
+    ("psnr", "PSNR ↑"),
+    ("ssim", "SSIM ↑"),
+    ("change_r2_full", "change_r2 full ↑"),
+    ("change_r2_mask", "change_r2 mask ↑"),
+    ("level_sd", "level sd ↓"),
+    ("reconstruction_psnr", "reconstr. PSNR ↑"),
+    ("reconstruction_ssim", "reconstr. SSIM ↑"),
+)
+LPIPS_COLUMNS = (("lpips", "LPIPS ↓"), ("reconstruction_lpips", "reconstr. LPIPS ↓"))
+TIER_TITLES = {
+    "absolute": "Absolute: the target ball as rendered (the paper's setting)",
+    "relative": "Relative: the model told r = level(ball_b) / level(ball_a) (the product's setting)",
+    "scale_invariant": "Scale-invariant: each absolute-mode image x its least-squares scale s* (structure only)",
+}
+
+
+def tier_table(tier: str, figures: dict[str, dict]) -> list[str]:
+    """One tier's markdown table, methods as rows (those the relit folder had), then its strongest baselines."""
     fmt = lambda v: "n/a" if v is None else f"{v:.3f}"
-    names = {
-        "model": "model",
-        "copy_input": "copy the input (baseline)",
-        "analytic_ad": "A * D_calc, analytic (baseline)",
-    }
+    columns = COLUMNS + tuple(c for c in LPIPS_COLUMNS if any(c[0] in f for f in figures.values()))
     lines = [
-        f"Stage 2 on the `{split}` split ({result['pairs']} pairs; conditions: {result['conditions']}); "
-        f"PSNR/SSIM on tone-mapped [0, 1] images ({result['space']})",
+        f"### {TIER_TITLES[tier]}",
         "",
-        "| method | relight PSNR ↑ | relight SSIM ↑ | reconstruction PSNR ↑ | reconstruction SSIM ↑ | relight LPIPS ↓ |",
-        "|---|---|---|---|---|---|",
-    ]
-    for key, name in names.items():
-        r, c = result["relight"].get(key, {}), result["reconstruction"].get(key, {})
-        lines.append(
-            f"| {name} | {fmt(r.get('psnr'))} | {fmt(r.get('ssim'))} | {fmt(c.get('psnr'))} | {fmt(c.get('ssim'))} | "
-            f"{fmt(r.get('lpips'))} |"
-        )
-    comp = result["components_psnr"]
-    res = result["residual_abs_mean"]
-    fl = result["flip_check_d_calc"]
-    r2 = result.get("change_r2", {})
-    lines += [
+        f"Space: {SPACES[tier]}; PSNR, SSIM and change_r2 on tone-mapped u = (to_model(x) + 1) / 2 in [0, 1] "
+        "(fixed exposure, Reinhard, 1/2.2 power), PSNR/SSIM of whole images, change_r2 pooled over pixels of the "
+        "full image or the mask; level sd in linear HDR on the mask.",
         "",
-        "change_r2 (1 - sum (dp - dt)^2 / sum dt^2 of the change from the input; copy 0, truth 1): "
-        + "; ".join(f"{names[k]} {fmt(v['full'])} full, {fmt(v['mask'])} mask" for k, v in r2.items() if k in names),
+        "| method | kind | " + " | ".join(h for _, h in columns) + " |",
+        "|---|---|" + "---|" * len(columns),
     ]
+    for m in TIER_METHODS[tier]:
+        if m.name in figures:
+            f = figures[m.name]
+            lines.append(f"| {m.label} | {m.kind} | " + " | ".join(fmt(f.get(k)) for k, _ in columns) + " |")
+    labels = {m.name: m.label for m in TIER_METHODS[tier]}
+    best = [
+        f"{heading.split(' ↑')[0]}: {labels[found[0]]} ({fmt(found[1])})"
+        for figure, heading in (("psnr", "PSNR ↑"), ("change_r2_mask", "change_r2 mask ↑"))
+        if (found := strongest_baseline(figures, tier, figure)) is not None
+    ]
+    if best:
+        lines += ["", "Strongest baseline: " + "; ".join(best) + "."]
+    return lines
+
+
+def markdown_table(result: dict, split: str, info: dict | None = None, lpips_note: str = "") -> str:
+    """reports/relight.md: the three tiers as tables, then light-following and the model's checks."""
+    fmt = lambda v: "n/a" if v is None else f"{v:.3f}"
+    info = info or {}
+    sampling = info.get("sampling", {})
+    how = ", ".join(f"{k} {sampling[k]}" for k in ("mode", "steps", "cfg_scale", "ensemble") if k in sampling)
+    lines = [
+        f"Stage 2 on the `{split}` split: {result['pairs']} pairs ({result['cross_light_pairs']} cross-light: "
+        f"relight; {result['identity_pairs']} identity: reconstruction). The model's conditions: "
+        f"{info.get('conditions', 'n/a')} (pred = stage-1 predictions); sampling: {how or 'n/a'}. "
+        f"PSNR is capped at {PSNR_CAP:g} dB (identical images). Kinds: baseline = needs nothing the model is not "
+        "given; oracle = uses ground truth at test time.",
+        "",
+    ]
+    for tier in TIERS:
+        if result.get(tier):
+            lines += tier_table(tier, result[tier]) + [""]
     lf = result.get("light_following", {})
-    if lf:
-        gt_r2 = lf.get("change_r2_gt_conditions") or {}
-        lines += [
-            "",
-            f"Light-following of the model: change_r2 with ground-truth conditions {fmt(gt_r2.get('full'))} full, "
-            f"{fmt(gt_r2.get('mask'))} mask; direction {fmt(lf.get('direction'))} over {lf.get('probes', 0)} probe "
-            f"images (chance 0.5); linearity {fmt(lf.get('linearity'))} (truth 2); identity "
-            f"|I - A_x D - S| / |I| on the mask {fmt(result.get('identity_residual_relative'))}.",
-        ]
+    comp = result.get("components_psnr", {})
+    res = result.get("residual_abs_mean", {})
+    fl = result["flip_check_d_calc"]
     lines += [
+        "### Light-following and the model's checks",
         "",
-        f"- LPIPS: {result['lpips_note']}.",
-        f"- D_pred PSNR {fmt(comp.get('diffuse'))}, S_pred PSNR {fmt(comp.get('specular'))} (tone-mapped).",
-        f"- Residual mean |I - A D - S| (linear, ground-truth A): model {fmt(res.get('model'))}, "
+        f"- Probes: direction {fmt(lf.get('direction'))} over {lf.get('probes', 0)} probe images: the share whose "
+        "relit left/right asymmetry (ground-truth normals, mask) is larger under an analytic light from "
+        f"camera-right than from camera-left (azimuth ±{PROBE_AZIMUTH_DEG:g}°, elevation {PROBE_ELEVATION_DEG:g}°; "
+        f"chance 0.5); linearity {fmt(lf.get('linearity'))}: the median relit radiance ratio under the target "
+        "ball x 2 and x 1 (mask; truth 2).",
+        f"- Identity |I - A_x D - S| / |I| on the mask (absolute split): {fmt(result.get('identity_residual_relative'))}.",
+        f"- LPIPS: {lpips_note or 'n/a'}.",
+        f"- D_pred PSNR {fmt(comp.get('diffuse'))}, S_pred PSNR {fmt(comp.get('specular'))} (tone-mapped, "
+        "absolute split).",
+        f"- Residual mean |I - A D - S| (linear, ground-truth A, absolute split): model {fmt(res.get('model'))}, "
         f"ground truth {fmt(res.get('ground_truth'))}.",
-        f"- Flipped-normal check (analytic D_calc): mean |asymmetry| {fmt(fl['mean_abs_asymmetry_with_n'])} with N, "
-        f"{fmt(fl['mean_abs_asymmetry_flipped'])} with N_x flipped; sign flipped in "
-        f"{fmt(fl['sign_flipped_fraction'])} of {fl['pairs_considered']} pairs with |asymmetry| > 0.01. "
-        "The model's D_pred version is in metrics/relight.json (flip_check_d_pred).",
+        "- Flipped-normal check (analytic D_calc): (R - L) / (R + L) of masked D_calc over right-/left-facing "
+        "pixels (n_x > 0.2 / < -0.2 of the unflipped N); mean |asymmetry| "
+        f"{fmt(fl['mean_abs_asymmetry_with_n'])} with N, {fmt(fl['mean_abs_asymmetry_flipped'])} with N_x "
+        f"flipped; sign flipped in {fmt(fl.get('sign_flipped_fraction'))} of {fl['pairs_considered']} pairs with "
+        "|asymmetry| > 0.01. The model's D_pred version is in metrics/relight.json (flip_check_d_pred).",
     ]
     return "\n".join(lines) + "\n"
