@@ -34,6 +34,7 @@ import torch
 import torch.nn.functional as F
 
 from pilight import atomic
+from pilight.detail import resize, with_input_detail
 from pilight.lights import Light
 from pilight.params import DOMAINS, SamplingParams
 from pilight.photo import Photo, as_photo, check_size, lcm, processing_size
@@ -377,11 +378,11 @@ class PILightPipeline:
         check_size(h, w, photo.name)
         ph, pw = self.processing_size(h, w, resolution)
         x = torch.from_numpy(photo.rgb).permute(2, 0, 1)[None]
-        x = _resize(x, (ph, pw)).clamp_min(0)
+        x = resize(x, (ph, pw)).clamp_min(0)
         if photo.mask is None:
             m = torch.ones(1, 1, ph, pw)
         else:
-            m = (_resize(torch.from_numpy(photo.mask)[None, None], (ph, pw)) >= 0.5).float()
+            m = (resize(torch.from_numpy(photo.mask)[None, None], (ph, pw)) >= 0.5).float()
         return photo, x, m
 
     @torch.no_grad()
@@ -398,7 +399,7 @@ class PILightPipeline:
 
     def _decomposition(self, photo: Photo, cond: dict[str, torch.Tensor]) -> DecompositionOutput:
         h, w = photo.size
-        up = {d: _resize(cond[d], (h, w)) for d in DOMAINS}
+        up = {d: resize(cond[d], (h, w)) for d in DOMAINS}
         n = F.normalize(up["normal"], dim=1, eps=1e-6)
         if photo.mask is not None:
             n = n * torch.from_numpy(photo.mask)[None, None]
@@ -444,7 +445,7 @@ class PILightPipeline:
             )
         cond = intrinsics.conditions
         s = self.config.ball_resolution
-        balls = torch.stack([_resize(l.ball.float()[None], (s, s))[0] for l in lights]).clamp_min(0)
+        balls = torch.stack([resize(l.ball.float()[None], (s, s))[0] for l in lights]).clamp_min(0)
         intensity = "absolute" if absolute else "relative"
         given = balls if absolute else relative_light(balls, torch.tensor([float(l.intensity) for l in lights]))
         sp = self.config.relight_sampling
@@ -460,10 +461,13 @@ class PILightPipeline:
             for key, v in pred.items():
                 outs.setdefault(key, []).append(v.float().cpu())
         h, w = photo.size
-        full = {
-            key: _resize(torch.cat(v), (h, w)).clamp_min(0).permute(0, 2, 3, 1).contiguous().numpy()
-            for key, v in outs.items()
-        }
+        cat = {key: torch.cat(v) for key, v in outs.items()}
+        hwc = lambda t: t.clamp_min(0).permute(0, 2, 3, 1).contiguous().numpy()
+        full = {key: hwc(resize(v, (h, w))) for key, v in cat.items()}
+        # the relit image keeps the photo's full-resolution detail: the change is carried at the processing
+        # size and applied to the full-size input (pilight.detail)
+        full_input = torch.from_numpy(photo.rgb).permute(2, 0, 1)[None]
+        full["relit"] = hwc(with_input_detail(cat["relit"], cat.get("specular"), x, full_input))
         return RelightOutput(
             relit=full["relit"],
             diffuse=full.get("diffuse"),
@@ -472,10 +476,3 @@ class PILightPipeline:
             lights=lights,
             intrinsics=intrinsics,
         )
-
-
-def _resize(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
-    """Bilinear, antialiased when shrinking; the identity at the same size (bit-exact round trips)."""
-    if tuple(x.shape[-2:]) == tuple(size):
-        return x
-    return F.interpolate(x.float(), size=size, mode="bilinear", align_corners=False, antialias=True)
