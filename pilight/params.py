@@ -131,7 +131,8 @@ class LightParams(_Section):
         ge=0.0,
         le=1.0,
         description="share of light conditions lit by Blender's procedural sky (multiple scattering) instead of "
-        "the point light and HDRI: its sun comes from the point light's drawn direction, at its irradiance",
+        "the point light and HDRI (room scenes keep their back light): its sun comes from the point light's "
+        "drawn direction, at its irradiance",
     )
     sky_air: DensityRange = Field(
         DensityRange(lo=0.8, hi=1.5), description="sky air density (Rayleigh: blue sky, reddened low sun); 1 = Earth"
@@ -142,6 +143,17 @@ class LightParams(_Section):
     sky_sun_intensity: DensityRange = Field(
         DensityRange(lo=0.7, hi=1.0), description="multiplier of the sun disc alone (thin cloud); 1 = physical"
     )
+
+    @model_validator(mode="after")
+    def _sun_above_the_horizon(self) -> LightParams:
+        # The sky's sun takes the point light's elevation (above 90: over the zenith); below ~5 degrees
+        # it sets, and a sky-lit image would be night.
+        if self.sky_probability > 0 and not 5.0 <= self.elevation_clip_deg.lo <= self.elevation_clip_deg.hi <= 175.0:
+            raise ValueError(
+                f"sky_probability > 0 needs elevation_clip_deg within [5, 175] (the sun's elevation); "
+                f"got [{self.elevation_clip_deg.lo}, {self.elevation_clip_deg.hi}]"
+            )
+        return self
 
 
 class HdriParams(_Section):

@@ -20,6 +20,7 @@ from mathutils import Euler, Matrix, Vector
 
 from pilight.params import RenderParams
 from pilight.render.materials import add_aov_layers, gray_ball_material, make_material, wire_principled_aovs
+from pilight.render.spec import half_height
 
 BALL_RADIUS = 0.05  # small, so the ball samples the light field at the scene centre
 LIGHTS_COLLECTION = "pilight_lights"
@@ -260,11 +261,13 @@ def _fit_asset(root, meshes, size: float, location, rotation_deg) -> None:
     )
 
 
-def _world(hdri_dir: Path, map_resolution: int, camera_backdrop: float | None = None):
-    """The world: HDRI + ambient (set per light by set_world). With ``camera_backdrop`` (linear
-    gray radiance; render.camera_backdrop), rays leaving the CAMERA see that constant instead, so
-    the background behind the scene is the same for every light of a view, while every other ray
-    (diffuse, glossy, shadow) still sees the lighting HDRI: the scene stays lit by it."""
+def _world(hdri_dir: Path, map_resolution: int, camera_backdrop: float | None = None, sky: bool = False):
+    """The world: HDRI + ambient (+ procedural sky with ``sky``), set per light by set_world. With
+    ``camera_backdrop`` (linear gray radiance; render.camera_backdrop), rays leaving the CAMERA see
+    that constant instead, so the background behind the scene is the same for every light of a view,
+    while every other ray (diffuse, glossy, shadow) still sees the lighting world: the scene stays lit
+    by it. The sky's nodes exist only in scenes with a sky light, so every other scene keeps the world
+    (and so the bytes) it had before skies existed."""
     world = bpy.data.worlds.new("pilight_world")
     nt = world.node_tree
     nt.nodes.clear()
@@ -280,8 +283,22 @@ def _world(hdri_dir: Path, map_resolution: int, camera_backdrop: float | None = 
     nt.links.new(env.outputs["Color"], bg_env.inputs["Color"])
     nt.links.new(bg_env.outputs["Background"], add.inputs[0])
     nt.links.new(bg_amb.outputs["Background"], add.inputs[1])
+    lighting = add.outputs["Shader"]
+    if sky:
+        tex, bg_sky, add_sky = (
+            nt.nodes.new("ShaderNodeTexSky"),
+            nt.nodes.new("ShaderNodeBackground"),
+            nt.nodes.new("ShaderNodeAddShader"),
+        )
+        tex.name, bg_sky.name = "sky", "sky_background"
+        # Its Vector stays unlinked: Cycles then samples the sun disc directly (scene/light.cpp, sun
+        # guiding of a sky with a sun disc), which a 256 x 128 importance map could not (0.5 degrees).
+        nt.links.new(tex.outputs["Color"], bg_sky.inputs["Color"])
+        nt.links.new(lighting, add_sky.inputs[0])
+        nt.links.new(bg_sky.outputs["Background"], add_sky.inputs[1])
+        lighting = add_sky.outputs["Shader"]
     if camera_backdrop is None:
-        nt.links.new(add.outputs["Shader"], out.inputs["Surface"])
+        nt.links.new(lighting, out.inputs["Surface"])
     else:
         path, backdrop = nt.nodes.new("ShaderNodeLightPath"), nt.nodes.new("ShaderNodeBackground")
         backdrop.name = "camera_backdrop"
@@ -289,7 +306,7 @@ def _world(hdri_dir: Path, map_resolution: int, camera_backdrop: float | None = 
         backdrop.inputs["Strength"].default_value = 1.0
         mix = nt.nodes.new("ShaderNodeMixShader")
         nt.links.new(path.outputs["Is Camera Ray"], mix.inputs["Fac"])
-        nt.links.new(add.outputs["Shader"], mix.inputs[1])
+        nt.links.new(lighting, mix.inputs[1])
         nt.links.new(backdrop.outputs["Background"], mix.inputs[2])
         nt.links.new(mix.outputs["Shader"], out.inputs["Surface"])
     world["hdri_dir"] = str(hdri_dir)
@@ -311,6 +328,26 @@ def set_world(world, light: dict) -> None:
     if hdri is not None:
         env.image = load_hdri(Path(world["hdri_dir"]), hdri["name"])
         mapping.inputs["Rotation"].default_value = (0.0, 0.0, math.radians(hdri["rotation_deg"]))
+    sky = light.get("sky")
+    if "sky" in nt.nodes:
+        nt.nodes["sky_background"].inputs["Strength"].default_value = 0.0 if sky is None else sky["strength"]
+        if sky is not None:
+            set_sky(nt.nodes["sky"], sky)
+    elif sky is not None:
+        raise RenderError("a sky light in a world built without the sky's nodes (build() decides from the spec)")
+
+
+def set_sky(node, sky: dict) -> None:
+    """Blender's sky node from a sky light's spec (pilight/render/spec.py, _sky)."""
+    node.sky_type = sky["model"]
+    x, y, z = sky["sun_direction"]
+    node.sun_elevation = math.asin(max(-1.0, min(1.0, z)))
+    # Blender's sun direction is (sin r cos e, cos r cos e, sin e): rotation 0 puts the sun toward +y
+    # (measured on equirectangular renders; tests/render/test_render_variety.py checks it on the ball).
+    node.sun_rotation = math.atan2(x, y)
+    node.sun_disc, node.sun_intensity = True, sky["sun_intensity"]
+    node.air_density, node.aerosol_density, node.ozone_density = sky["air"], sky["aerosol"], 1.0
+    node.altitude = 100.0  # metres above sea level: a scene on the ground
 
 
 def hdri_path(hdri_dir: Path, name: str) -> Path:
@@ -383,14 +420,16 @@ def build(spec: dict, p: RenderParams, hdri_dir: Path) -> dict:
         obj.name = f"obj_{i:02d}_{o['shape']}"
         obj.location = o["location"]
         obj.rotation_euler = [math.radians(a) for a in o["rotation_deg"]]
-        obj.scale = (o["scale"],) * 3
+        # Per-axis stretch (render.scene.stretch): Cycles moves normals by the inverse transpose of
+        # the object's matrix, so the normal pass stays that of the stretched surface.
+        obj.scale = [o["scale"] * s for s in o.get("stretch", (1.0, 1.0, 1.0))]
         for m in o["modifiers"]:
             _modifier(obj, m)
         mat = make_material(f"mat_{i:02d}", o["material"])
         obj.data.materials.append(mat)
         deterministic_normals(obj)
         materials.append({"object": obj.name, **o["material"]})
-        lowest = min(lowest, o["location"][2] - o["scale"])
+        lowest = min(lowest, o["location"][2] - half_height(o))
     for j, a in enumerate(spec["assets"]):
         root, meshes = import_asset(a["asset"], f"asset_{j:02d}")
         _fit_asset(root, meshes, a["size"], a["location"], a["rotation_deg"])
@@ -399,7 +438,8 @@ def build(spec: dict, p: RenderParams, hdri_dir: Path) -> dict:
     cam = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
     scene.collection.objects.link(cam)
     scene.camera = cam
-    world = _world(hdri_dir, p.cycles.world_map_resolution, p.camera_backdrop)
+    has_sky = any(l.get("sky") for view_lights in spec["lights"] for l in view_lights)
+    world = _world(hdri_dir, p.cycles.world_map_resolution, p.camera_backdrop, sky=has_sky)
     scene.world = world
 
     lights = bpy.data.collections.new(LIGHTS_COLLECTION)

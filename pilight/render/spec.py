@@ -11,6 +11,10 @@ the scene's sidecar. Distributions follow the paper's appendix (Dataset Construc
 - lights: azimuth U[0, 360], elevation N(60, 40) clipped to [20, 160] degrees, strength U[5, 20]
   with jitter, lowered when an HDRI is on; a small ambient term; 80% point light alone, 20% point
   light plus an environment map.
+Variety beyond the paper, for the base model, each off by default and then drawing nothing, so the
+default's specs keep every draw (tests/render/test_variety_spec.py pins them): per-axis stretch of
+objects (render.scene.stretch), material classes (render.scene.material_model, material_classes.py)
+and the procedural sky in place of the point light and HDRI (render.light.sky_probability).
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ import zlib
 import numpy as np
 
 from pilight.params import RenderParams
+from pilight.render.material_classes import PATTERN_EDGE, class_material, pattern_material
 
 SPLITS = ("train", "val", "test")
 
@@ -67,6 +72,8 @@ def _material(rng: np.random.Generator, p: RenderParams) -> dict:
                 "ior": 1.45,
             }
         return {"type": "emission", "color": _colour(rng), "strength": round(float(rng.uniform(1.0, 4.0)), 3)}
+    if p.scene.material_model == "classes":
+        return class_material(rng, p.scene.material_classes.model_dump(), p.scene.textures)
     if p.scene.material_pattern == "shared":
         return _shared_pattern_material(rng, p)
     metal = 1.0 if rng.uniform() < p.scene.metallic_probability else 0.0
@@ -76,12 +83,6 @@ def _material(rng: np.random.Generator, p: RenderParams) -> dict:
         "roughness": _channel(rng, p, round(float(rng.uniform(0.1, 0.9)), 4), 0.05, 1.0, colour=False),
         "metallic": _channel(rng, p, metal, 0.0, 1.0, colour=False),
     }
-
-
-# Half-width of the Fac band that a shared pattern's mask ramps across: narrow, so the two
-# sub-materials meet along a soft edge (anti-aliased, as in a baked material mask) instead of
-# blending over the whole of a noise texture, whose Fac stays mostly between 0.3 and 0.7.
-PATTERN_EDGE = 0.05
 
 
 def _shared_pattern_material(rng: np.random.Generator, p: RenderParams) -> dict:
@@ -109,16 +110,23 @@ def _shared_pattern_material(rng: np.random.Generator, p: RenderParams) -> dict:
     pattern = {
         "texture": str(rng.choice(p.scene.textures)),
         "scale": round(float(rng.uniform(2.0, 8.0)), 3),
-        "edge": PATTERN_EDGE,
+        "edge": PATTERN_EDGE,  # material_classes.py
     }
-    channels = {
-        k: {"const": a} if a == b else {"values": [a, b]}
-        for k, a, b in zip(("base_color", "roughness", "metallic"), first, second)
-    }
-    return {"type": "principled", "pattern": pattern, **channels}
+    return pattern_material(first, second, pattern)
 
 
-def _object(rng, p: RenderParams, location, size: float) -> dict:
+def half_height(obj: dict) -> float:
+    """Half the world-z extent of an object, read as its bounding sphere (radius ``scale``, as the
+    ground and room placement always have): stretched and rotated, x = R S u with |u| <= scale
+    reaches z = scale * |S R^T e_z|, where R^T e_z is the last row of Blender's XYZ Euler matrix."""
+    if "stretch" not in obj:
+        return obj["scale"]
+    rx, ry, _ = np.radians(obj["rotation_deg"])
+    last_row = np.array([-math.sin(ry), math.cos(ry) * math.sin(rx), math.cos(ry) * math.cos(rx)])
+    return float(obj["scale"] * np.linalg.norm(np.asarray(obj["stretch"]) * last_row))
+
+
+def _object(rng, p: RenderParams, location, size: float, on_floor: bool = False) -> dict:
     shape = str(rng.choice(p.scene.shapes))
     modifiers = []
     if rng.uniform() < p.scene.modifier_probability:
@@ -127,7 +135,7 @@ def _object(rng, p: RenderParams, location, size: float) -> dict:
                 shape, "displace" if rng.uniform() < 0.5 else "subdivision"
             )
         )
-    return {
+    obj = {
         "shape": shape,
         "location": np.round(location, 4).tolist(),
         "rotation_deg": rng.uniform(0, 360, 3).round(3).tolist(),
@@ -135,6 +143,12 @@ def _object(rng, p: RenderParams, location, size: float) -> dict:
         "modifiers": modifiers,
         "material": _material(rng, p),
     }
+    stretch = p.scene.stretch
+    if stretch.probability > 0 and rng.uniform() < stretch.probability:  # at 0 no draw: older scenes keep theirs
+        obj["stretch"] = rng.uniform(stretch.lo, stretch.hi, 3).round(4).tolist()  # per local axis
+        if on_floor:  # rests on the floor as an unstretched object does: its centre one half-height up
+            obj["location"][2] = round(half_height(obj), 4)
+    return obj
 
 
 def _look_view(location, target, lens_mm: float = 50.0) -> dict:
@@ -186,6 +200,32 @@ def _point(location, irradiance: float, distance: float, radius: float) -> dict:
     }
 
 
+# Blender's procedural sky (ShaderNodeTexSky, Blender 5.0: SINGLE_SCATTERING, MULTIPLE_SCATTERING,
+# PREETHAM, HOSEK_WILKIE). Multiple scattering (new in 5.0) is the physical one: its sky is also lit by
+# light scattered more than once, as Earth's is.
+SKY_MODEL = "MULTIPLE_SCATTERING"
+# The sky's irradiance on a surface facing its sun at Background strength 1 (sun disc + sky, Earth's
+# atmosphere, mean of R, G, B): 121-145 for suns 20-75 degrees up, integrated from equirectangular
+# renders of the world. A sky light of strength e / SKY_IRRADIANCE thus gives about the irradiance e
+# that the point light would have given. Exposure, measured on 16 scenes of the committed params
+# (128 px, view 0, the same light draws point-lit and sky-lit): sky-lit images have 0.975 times the
+# mean radiance on the mask (geometric mean; 0.6-2.1 per scene), the Lambertian ball 1.14 times (the
+# sky's dome also lights the side the sun does not).
+SKY_IRRADIANCE = 140.0
+
+
+def _sky(rng, lp, sun_direction: np.ndarray, irradiance: float) -> dict:
+    """An outdoor light: the sky with its sun along ``sun_direction`` (z up, at least 5 degrees up)."""
+    return {
+        "model": SKY_MODEL,
+        "sun_direction": np.round(sun_direction, 6).tolist(),
+        "strength": round(irradiance / SKY_IRRADIANCE, 6),
+        "air": round(float(rng.uniform(lp.sky_air.lo, lp.sky_air.hi)), 4),
+        "aerosol": round(float(rng.uniform(lp.sky_aerosol.lo, lp.sky_aerosol.hi)), 4),
+        "sun_intensity": round(float(rng.uniform(lp.sky_sun_intensity.lo, lp.sky_sun_intensity.hi)), 4),
+    }
+
+
 def _lights(rng, p: RenderParams, kind: str, view: dict, target, hdris: tuple[str, ...]) -> list[dict]:
     lp, out = p.light, []
     for _ in range(p.lights_per_view):
@@ -200,8 +240,13 @@ def _lights(rng, p: RenderParams, kind: str, view: dict, target, hdris: tuple[st
             )
         )
         strength = rng.uniform(lp.strength.lo, lp.strength.hi) * (1 + rng.uniform(-lp.jitter, lp.jitter))
+        sky = None
+        if lp.sky_probability > 0 and rng.uniform() < lp.sky_probability:  # at 0 no draw: older scenes keep theirs
+            # The sky replaces the point light and the HDRI: its sun is the key light, from where the
+            # point light would have been (a second sun or a second environment would be no real place).
+            sky = _sky(rng, lp, _direction(az, el), strength * lp.irradiance_scale)
         hdri = None
-        if hdris and rng.uniform() < lp.hdri_probability:
+        if sky is None and hdris and rng.uniform() < lp.hdri_probability:
             strength *= lp.point_scale_with_hdri
             hdri = {
                 "name": str(rng.choice(hdris)),
@@ -209,8 +254,12 @@ def _lights(rng, p: RenderParams, kind: str, view: dict, target, hdris: tuple[st
                 "rotation_deg": round(float(rng.uniform(0, 360)), 3),
             }
         e = strength * lp.irradiance_scale
-        points = [_point(np.asarray(target) + lp.distance * _direction(az, el), e, lp.distance, lp.radius)]
-        if kind == "room":  # the appendix's extra light behind the camera, within +-30 degrees
+        key = _point(np.asarray(target) + lp.distance * _direction(az, el), e, lp.distance, lp.radius)
+        points = [] if sky else [key]
+        # The appendix's extra light behind the camera, within +-30 degrees; kept under the sky too: it
+        # lights the side of a room that the camera sees (without it, most sky-lit rooms measured 0.3 to
+        # 0.65 times as bright as point-lit ones).
+        if kind == "room":
             eye = np.asarray(view["location"])
             back = eye - np.asarray(view["target"])
             back /= np.linalg.norm(back)
@@ -220,9 +269,10 @@ def _lights(rng, p: RenderParams, kind: str, view: dict, target, hdris: tuple[st
             location = eye + 1.5 * back
             # Half the main light's irradiance at the scene centre.
             points.append(_point(location, 0.5 * e, float(np.linalg.norm(location - np.asarray(target))), lp.radius))
-        out.append(
-            {"points": points, "hdri": hdri, "ambient": round(float(rng.uniform(lp.ambient.lo, lp.ambient.hi)), 5)}
-        )
+        light = {"points": points, "hdri": hdri, "ambient": round(float(rng.uniform(lp.ambient.lo, lp.ambient.hi)), 5)}
+        if sky is not None:
+            light["sky"] = sky
+        out.append(light)
     return out
 
 
@@ -249,7 +299,7 @@ def scene_spec(p: RenderParams, seed: int, split: str, index: int) -> dict:
         n = int(rng.integers(p.scene.objects_room_scene.lo, p.scene.objects_room_scene.hi + 1))
         for _ in range(n):
             size = rng.uniform(0.25, 0.6)
-            objects.append(_object(rng, p, [*rng.uniform([-1.6, -1.0], [1.6, 1.5]), size], size))
+            objects.append(_object(rng, p, [*rng.uniform([-1.6, -1.0], [1.6, 1.5]), size], size, on_floor=True))
         backdrop = {"type": "room", "material": _material(rng, p), "wall_material": _material(rng, p)}
         target = [0.0, 0.0, 0.6]
         views = _room_views(rng, p)

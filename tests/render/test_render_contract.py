@@ -192,15 +192,16 @@ def test_displacement_moves_vertices_along_the_normal(bpy_render):
     assert r.std() > 1e-3 and np.all(np.abs(r - 0.7) <= 0.5 * 0.12 + 0.01)  # |value - 0.5| * strength
 
 
-@pytest.mark.parametrize("texture", ["checker", "noise"])
-def test_shared_pattern_drives_colour_roughness_and_metal_together(tmp_path, bpy_render, texture):
+# gabor at scale 2: its stripes (frequency 2) at 4 are finer than these 48 px resolve
+@pytest.mark.parametrize("texture, scale", [("checker", 4.0), ("noise", 4.0), ("gradient", 4.0), ("gabor", 2.0)])
+def test_shared_pattern_drives_colour_roughness_and_metal_together(tmp_path, bpy_render, texture, scale):
     """A textured material is two sub-materials along one mask, so every pixel (edges and
     anti-aliasing included) is one blend w of both: metallic (0 -> 1) gives w, and the albedo
     and roughness must then be the same blend."""
     a, b = (0.6, 0.1, 0.1), (0.1, 0.2, 0.7)
     material = {
         "type": "principled",
-        "pattern": {"texture": texture, "scale": 4.0, "edge": 0.05},
+        "pattern": {"texture": texture, "scale": scale, "edge": 0.05},
         "base_color": {"values": [list(a), list(b)]},
         "roughness": {"values": [0.2, 0.8]},
         "metallic": {"values": [0.0, 1.0]},
