@@ -98,6 +98,29 @@ def tier_image(tier: str, image: torch.Tensor, target: torch.Tensor, mask: torch
     return scaled_to(image, target, mask) if tier == "scale_invariant" else image
 
 
+@dataclass(frozen=True)
+class Pairs:
+    """What a batch of pairs is graded against, tone-mapped once for every method: the linear target,
+    its and the input's display values u, the mask and which pairs are cross-light."""
+
+    target: torch.Tensor  # (B, 3, H, W) linear HDR
+    u_target: torch.Tensor
+    u_input: torch.Tensor
+    mask: torch.Tensor  # (B, 1, H, W)
+    cross: torch.Tensor  # (B,) bool; the others are identity pairs
+
+    @classmethod
+    def of(cls, image_a: torch.Tensor, image_b: torch.Tensor, mask: torch.Tensor, cross: torch.Tensor) -> Pairs:
+        return cls(image_b, tonemap01(image_b), tonemap01(image_a), mask, cross)
+
+    def select(self, sel: torch.Tensor) -> Pairs:
+        return (
+            self
+            if bool(sel.all())
+            else Pairs(*(x[sel] for x in (self.target, self.u_target, self.u_input)), self.mask[sel], self.cross[sel])
+        )
+
+
 class MethodScores:
     """One method's figures in one tier, accumulated over batches (module docstring)."""
 
@@ -107,10 +130,9 @@ class MethodScores:
         self.change = ChangeR2()
         self.levels: list[torch.Tensor] = []
 
-    def update(self, pred, target, image_a, mask, cross: torch.Tensor, lpips=None) -> None:
-        """Linear HDR (B, 3, H, W) images of B pairs, mask (B, 1, H, W); ``cross`` (B,) marks the
-        cross-light pairs (the rest are identity pairs)."""
-        u, gt, u_in = tonemap01(pred), tonemap01(target), tonemap01(image_a)
+    def update(self, pred: torch.Tensor, pairs: Pairs, lpips=None) -> None:
+        """``pred``: the method's linear HDR images (B, 3, H, W) of the B ``pairs``, as its tier grades them."""
+        u, gt, cross = tonemap01(pred), pairs.u_target, pairs.cross
         for scores, sel in ((self.relight, cross), (self.reconstruction, ~cross)):
             if sel.any():
                 scores["psnr"].append(psnr_per_image(u[sel], gt[sel]))
@@ -118,8 +140,8 @@ class MethodScores:
                 if lpips is not None:
                     scores["lpips"].append(lpips(u[sel], gt[sel]).flatten())
         if cross.any():
-            self.change.update(u[cross], gt[cross], u_in[cross], mask[cross])
-            self.levels.append(level_log_ratio(pred[cross], target[cross], mask[cross]))
+            self.change.update(u[cross], gt[cross], pairs.u_input[cross], pairs.mask[cross])
+            self.levels.append(level_log_ratio(pred[cross], pairs.target[cross], pairs.mask[cross]))
 
     def compute(self) -> dict[str, float | int]:
         """Figures of the pairs seen; a figure with no pair (or no LPIPS) is left out."""

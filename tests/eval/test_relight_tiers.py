@@ -18,6 +18,7 @@ from pilight.eval.relight import evaluate_relight, relight_report
 from pilight.eval.relight_tiers import (
     TIER_METHODS,
     MethodScores,
+    Pairs,
     exposure_matched_copy,
     intensity_ratio,
     strongest_baseline,
@@ -66,8 +67,9 @@ def test_copy_scores_zero_change_and_the_truth_one():
     a, b = torch.rand(4, 3, 16, 16, generator=g), torch.rand(4, 3, 16, 16, generator=g)
     mask, cross = torch.ones(4, 1, 16, 16), torch.tensor([True, True, True, False])
     copy, truth = MethodScores(), MethodScores()
-    copy.update(a, b, a, mask, cross)
-    truth.update(b, b, a, mask, cross)
+    pairs = Pairs.of(a, b, mask, cross)
+    copy.update(a, pairs)
+    truth.update(b, pairs)
     c, t = copy.compute(), truth.compute()
     assert c["change_r2_mask"] == 0.0 and t["change_r2_mask"] == 1.0 and t["psnr"] == PSNR_CAP
     assert c["pairs"] == 3 and c["reconstruction_pairs"] == 1 and t["level_sd"] == 0.0
