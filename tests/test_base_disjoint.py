@@ -1,0 +1,53 @@
+"""The shipped base never sees the embedded default's test scenes or held-out HDRIs, and its held-out split's
+shapes and textures are ones it never trained on; its params build the default's networks."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from pilight.base_model import mismatches
+from pilight.params import RenderParams, read_params
+from pilight.profiles import compose
+from pilight.render.spec import scene_spec
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT, BASE, HELDOUT = (read_params(REPO / f) for f in ("params.yaml", "base/params.yaml", "base/heldout.yaml"))
+
+
+def _render(p: dict) -> RenderParams:
+    return RenderParams.model_validate(p["render"])
+
+
+def test_base_params_are_the_profiles_composed():
+    assert compose(DEFAULT, read_params(REPO / "base/profile.yaml")) == BASE
+    assert compose(BASE, read_params(REPO / "base/heldout_profile.yaml")) == HELDOUT
+
+
+def test_seeds_differ_so_no_scene_is_shared():
+    seeds = [p["base"]["seed"] for p in (DEFAULT, BASE, HELDOUT)]
+    assert len(set(seeds)) == 3
+    # and, drawn, no scene of the default's test split is among the base's (its objects and materials)
+    content = lambda s: json.dumps([s["objects"], s["backdrop"], s["views"]], sort_keys=True)
+    r_def, r_base = _render(DEFAULT), _render(BASE)
+    test = {content(scene_spec(r_def, seeds[0], "test", i)) for i in range(r_def.scenes.test)}
+    base = {content(scene_spec(r_base, seeds[1], s, i)) for s in ("train", "test") for i in range(60)}
+    assert not test & base
+
+
+def test_no_held_out_hdri_of_the_default_reaches_the_base():
+    held = set(_render(DEFAULT).hdri.test_holdout)
+    for p in (BASE, HELDOUT):
+        assert not held & set(_render(p).hdri.names)
+
+
+def test_the_held_out_split_has_shapes_and_textures_the_base_never_saw():
+    base, held = _render(BASE).scene, _render(HELDOUT).scene
+    assert held.shapes and held.textures
+    assert not set(held.shapes) & set(base.shapes)
+    assert not set(held.textures) & set(base.textures)
+
+
+def test_the_base_builds_the_defaults_networks():
+    for stage in ("intrinsics", "relight"):
+        assert mismatches(stage, DEFAULT[stage], BASE[stage]) == []
