@@ -337,7 +337,7 @@ def markdown_table(result: dict, split: str, info: dict | None = None, lpips_not
     res = result.get("residual_abs_mean", {})
     fl = result["flip_check_d_calc"]
     lines += [
-        "### Light-following and the model's checks",
+        "### Light-following of the model, and its checks",
         "",
         f"- Probes: direction {fmt(lf.get('direction'))} over {lf.get('probes', 0)} probe images: the share whose "
         "relit left/right asymmetry (ground-truth normals, mask) is larger under an analytic light from "
