@@ -30,9 +30,24 @@ from benchmarks.stage1_study import apply_overrides, run_seed, score  # noqa: E4
 from pilight.params import IntrinsicsParams, load_section, read_params  # noqa: E402
 
 
+def finished_manifest(renders: Path) -> dict:
+    """The manifest of a render folder, or, while it is still rendering, of its finished scenes (a scene's
+    scene.json is written after all its views, pilight.render.dataset)."""
+    if (renders / "manifest.json").is_file():
+        return json.loads((renders / "manifest.json").read_text())
+    from pilight.render.dataset import manifest_entry
+
+    done = sorted(p.parent for p in renders.glob("*/scene.json"))
+    specs = [json.loads((d / "scene.json").read_text())["spec"] for d in done]
+    return {
+        "resolution": json.loads((done[0] / "scene.json").read_text())["resolution"],
+        "scenes": [manifest_entry(s) for s in specs],
+    }
+
+
 def subset_renders(renders: Path, n_train: int, out: Path) -> Path:
     """out/: symlinks to the first ``n_train`` training scenes and every other split's, and their manifest."""
-    manifest = json.loads((renders / "manifest.json").read_text())
+    manifest = finished_manifest(renders)
     train = sorted((s for s in manifest["scenes"] if s["split"] == "train"), key=lambda s: s["id"])
     if n_train > len(train):
         raise SystemExit(f"{renders}: {len(train)} training scenes, {n_train} asked for")

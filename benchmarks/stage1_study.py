@@ -99,18 +99,23 @@ def score(task, shards: Path, split: str, limit: int | None = None) -> dict[str,
     }
 
 
-def run_seed(raw: dict, shards: Path, seed: int, train_images: int) -> dict:
+def run_seed(raw: dict, shards: Path, seed: int, train_images: int, eval_shards: Path | None = None) -> dict:
     from pilight.train.intrinsics import IntrinsicsTask
     from pilight.train.loop import train
 
     p = IntrinsicsParams.model_validate(raw)
     torch.manual_seed(seed)
     task = IntrinsicsTask(p, shards, seed=seed)
+    if p.unet.init == "base":
+        from pilight.base_model import init_from_base
+
+        init_from_base(task.stack, p, "intrinsics")
     with tempfile.TemporaryDirectory() as ckpt:
         stats = train(task, p.train, Path(ckpt), None, seed=seed)
     task.stack.model.eval()
     t0 = time.perf_counter()
-    out = {"seed": seed, "train_seconds": stats["seconds"], "steps": stats["steps"], **score(task, shards, "test")}
+    test = eval_shards or shards
+    out = {"seed": seed, "train_seconds": stats["seconds"], "steps": stats["steps"], **score(task, test, "test")}
     out["predict_seconds"] = time.perf_counter() - t0
     if train_images:
         out |= {f"train_{k}": v for k, v in score(task, shards, "train", train_images).items()}
@@ -152,6 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, nargs="+", default=[42])
     ap.add_argument("--name", default=None, help="the run's name in --compare tables (default: the overrides)")
     ap.add_argument("--train-images", type=int, default=0)
+    ap.add_argument("--eval-shards", type=Path, default=None, help="score the test split of these shards instead")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--compare", type=Path, nargs="+", default=None, help="print a table of these --json files")
@@ -166,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     result = {"name": args.name or " ".join(args.overrides) or "params", "overrides": args.overrides}
     result |= {"cpu": cpu_name(), "threads": torch.get_num_threads(), "seeds": []}
     for seed in args.seeds:
-        r = run_seed(raw, args.shards, seed, args.train_images)
+        r = run_seed(raw, args.shards, seed, args.train_images, args.eval_shards)
         result["seeds"].append(r)
         print(json.dumps(r), flush=True)
         if args.json:

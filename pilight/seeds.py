@@ -69,9 +69,10 @@ DEFAULT_EVALUATE_KEYS = (
     "intrinsics.model.normal_mean_deg",
     "intrinsics.model.roughness_mae",
     "intrinsics.model.metallic_mae",
-    "relight.relight.model.psnr",
-    "relight.relight.model.ssim",
-    "relight.change_r2.model.mask",
+    "relight.absolute.model.psnr",
+    "relight.relative.model.psnr",
+    "relight.relative.model.change_r2_mask",
+    "relight.scale_invariant.model.psnr",
 )
 ARMS = ("default", "variant")
 MESSAGE = "pilight-seeds"  # the experiments' commit message: "pilight-seeds: <arm> seed <s>; targets: <stages>"

@@ -1,7 +1,7 @@
 """DVC stage `export` of the base pipeline (base/dvc.yaml): the trained models -> the shipped pilight-base.
 
     python stages/export_model.py --params base/params.yaml --models base/models --out weights/pilight-base \\
-        --metrics base/metrics/evaluate.json base/metrics/evaluate_heldout.json --live base/dvclive
+        --metrics base/metrics/headline.json base/metrics/headline_heldout.json --live base/dvclive
 
 Loads both stages as the photo pipeline does, stores their weights in half precision (both stages
 together within the 40 MB git budget; they load back as float32), writes pipeline.json from the
@@ -25,7 +25,7 @@ MAX_BYTES = 40 * 1024 * 1024  # both stages' safetensors together: the shipped b
 def options(ap) -> None:
     ap.add_argument("--models", type=Path, default=Path("base/models"))
     ap.add_argument("--out", type=Path, default=Path("weights/pilight-base"))
-    ap.add_argument("--metrics", type=Path, nargs="*", default=[], help="evaluate.json of each test split")
+    ap.add_argument("--metrics", type=Path, nargs="*", default=[], help="headline.json of each test split")
     ap.add_argument("--live", type=Path, default=None, help="dvclive folder of both training stages")
 
 

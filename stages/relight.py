@@ -49,7 +49,7 @@ def body(args, base, p, ip) -> int:
     atomic.write_json(args.metrics, m, sort_keys=True)
     print(
         f"relight: {m['pairs']} pairs, {m['seconds_per_pair']:.3f} s/pair ({ip.mode}, {ip.steps} steps, "
-        f"cfg {ip.cfg_scale}, ensemble {ip.ensemble}, conditions {m['conditions']}) -> {args.out}"
+        f"cfg {ip.cfg_scale}, ensemble {ip.ensemble}, conditions {'pred' if preds is not None else 'gt'}) -> {args.out}"
     )
     return 0
 

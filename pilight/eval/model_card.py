@@ -17,7 +17,7 @@ def _flat(d: Any, prefix: str = "") -> dict[str, float]:
 
 
 def _figures(metrics: dict[str, dict], keys: list[str]) -> list[str]:
-    """One row per headline key, one column per test split (the evaluate.json files exported)."""
+    """One row per headline key (pilight.eval.metrics_files), one column per test split."""
     flat = {name: _flat(m) for name, m in metrics.items()}
     names = list(flat)
     rows = ["| figure | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
@@ -45,8 +45,8 @@ def model_card(
 ) -> str:
     sc, light, hdri = render.scene, render.light, render.hdri
     held = [h for h in hdri.names if h in hdri.test_holdout]
-    keys = sorted({k for m in metrics.values() for k in _flat(m.get("headline", m))})
-    headline = {n: m.get("headline", m) for n, m in metrics.items()}
+    keys = list(dict.fromkeys(k for m in metrics.values() for k in _flat(m)))  # the headline files' order
+    headline = metrics
     lines = [
         "# pilight-base",
         "",

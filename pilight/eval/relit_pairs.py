@@ -179,14 +179,13 @@ def relight_split(
     written = {name: what for name, (_, what) in described.items()}
     written[PROBE_SPLIT] = "probe images under the light-following probe lights"
     out_index = write_predictions(out, jobs, index_info(task, ip, source, written))
-    flip = {"pairs": 0, "note": "needs the diffuse branch (relight.decomposition: true)"}
-    if check_flip and stats.first and "diffuse" in task.branches:
-        flip = flip_check(task, stats.first, ip, seed)
-    return {
+    out = {
         "seconds_per_pair": stats.seconds / max(stats.pairs, 1),
         "pairs": stats.pairs,
-        "conditions": source,
-        "identity_residual_relative": stats.identity_residual(),
         "samples": out_index["splits"][split]["samples"],
-        "flip_check_d_pred": flip,
-    }
+    }  # numbers only: the conditions are in data/relit/index.json
+    if stats.identity_residual() is not None:
+        out["identity_residual_relative"] = stats.identity_residual()
+    if check_flip and stats.first and "diffuse" in task.branches:  # needs the diffuse branch
+        out["flip_check_d_pred"] = flip_check(task, stats.first, ip, seed)
+    return out
