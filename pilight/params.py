@@ -7,7 +7,7 @@ milliseconds (not after Blender has started) with the key, the value and what is
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
@@ -20,6 +20,14 @@ PROCEDURAL_TEXTURES = ("noise", "voronoi", "checker", "wave", "brick", "magic") 
 EXTRA_TEXTURES = ("gradient", "gabor")
 MATERIAL_CLASSES = ("metal", "plastic", "rubber", "wood", "stone", "ceramic")  # pilight/render/material_classes.py
 ASSET_SUFFIXES = (".glb", ".gltf", ".obj", ".blend")
+
+# Upper limits of keys defined before the render limits below (issue 36: every key has a range and a
+# resource bound; a typo'd extra digit must fail in milliseconds, not after an hour or 40 GB).
+MAX_SEED = 2**32 - 1  # numpy's and most samplers' seed width
+MAX_SCENES = 1_000_000  # per split; rendering that many takes weeks on a GPU farm
+MAX_PER_SCENE = 1000  # views per scene, lights per view, objects per scene
+MAX_ANGLE_DEG = 720.0
+MAX_LEVEL = 10_000.0  # light strengths, ambient and HDRI multipliers
 
 
 class ParamsError(ValueError):
@@ -41,22 +49,35 @@ class _Section(BaseModel):
     @field_validator("*", mode="before")
     @classmethod
     def _no_bool_numbers(cls, v, info: ValidationInfo):
-        """YAML's true/false are ints to pydantic's lax mode, so `scenes.train: true` would count 1."""
-        if isinstance(v, bool) and cls.model_fields[info.field_name].annotation in (
+        """YAML's true/false are ints to pydantic's lax mode, so `scenes.train: true` would count 1.
+        In a params file (context "from_file") an empty sub-section (`cycles: {}`) is refused like an
+        empty section (``_validate``); in Python, ``RenderParams(cycles={})`` still means the defaults."""
+        annotation = cls.model_fields[info.field_name].annotation
+        if isinstance(v, bool) and annotation in (
             int,
             float,
             int | None,
             float | None,
         ):
             raise ValueError("a boolean where a number is expected")
+        from_file = (info.context or {}).get("from_file", False)
+        if (
+            from_file
+            and isinstance(v, dict)
+            and not v
+            and isinstance(annotation, type)
+            and issubclass(annotation, BaseModel)
+        ):
+            raise ValueError("an empty section: give its keys, or leave the key out to use the defaults")
         return v
 
 
 class BaseParams(_Section):
-    seed: int = Field(42, ge=0, description="root of every random draw in the pipeline")
+    seed: int = Field(42, ge=0, le=MAX_SEED, description="root of every random draw in the pipeline")
     train_seed: int | None = Field(
         None,
         ge=0,
+        le=MAX_SEED,
         description="seed of every stage after the shards (training, inference, sampling); null = seed. "
         "Varying it reruns training on the same renders and shards (python -m pilight.seeds)",
     )
@@ -68,8 +89,8 @@ class BaseParams(_Section):
 
 
 class Range(_Section):
-    lo: float
-    hi: float
+    lo: float = Field(ge=-1e6, le=1e6)
+    hi: float = Field(ge=-1e6, le=1e6)
 
     @model_validator(mode="after")
     def _ordered(self) -> Range:
@@ -79,8 +100,8 @@ class Range(_Section):
 
 
 class IntRange(_Section):
-    lo: int = Field(ge=0)
-    hi: int = Field(ge=0)
+    lo: int = Field(ge=0, le=MAX_PER_SCENE)
+    hi: int = Field(ge=0, le=MAX_PER_SCENE)
 
     @model_validator(mode="after")
     def _ordered(self) -> IntRange:
@@ -90,9 +111,30 @@ class IntRange(_Section):
 
 
 class SplitCounts(_Section):
-    train: int = Field(ge=0)
-    val: int = Field(ge=0)
-    test: int = Field(ge=0)
+    train: int = Field(ge=0, le=MAX_SCENES)
+    val: int = Field(ge=0, le=MAX_SCENES)
+    test: int = Field(ge=0, le=MAX_SCENES)
+
+
+class AngleRange(Range):
+    """A range of angles in degrees (azimuth: any turn, written within two of them)."""
+
+    lo: float = Field(ge=-MAX_ANGLE_DEG, le=MAX_ANGLE_DEG)
+    hi: float = Field(ge=-MAX_ANGLE_DEG, le=MAX_ANGLE_DEG)
+
+
+class ElevationRange(Range):
+    """A range of elevations in degrees; above 90 lies past the zenith."""
+
+    lo: float = Field(ge=-180.0, le=180.0)
+    hi: float = Field(ge=-180.0, le=180.0)
+
+
+class LevelRange(Range):
+    """A range of a non-negative light level (strength, ambient, an HDRI's multiplier)."""
+
+    lo: float = Field(ge=0.0, le=MAX_LEVEL)
+    hi: float = Field(ge=0.0, le=MAX_LEVEL)
 
 
 class DensityRange(Range):
@@ -105,24 +147,24 @@ class DensityRange(Range):
 class LightParams(_Section):
     """Light sampling, the paper's appendix (object data / scene data)."""
 
-    azimuth_deg: Range = Range(lo=0.0, hi=360.0)
-    elevation_mean_deg: float = 60.0
-    elevation_std_deg: float = Field(40.0, ge=0.0)
-    elevation_clip_deg: Range = Range(lo=20.0, hi=160.0)
+    azimuth_deg: AngleRange = AngleRange(lo=0.0, hi=360.0)
+    elevation_mean_deg: float = Field(60.0, ge=-180.0, le=180.0)
+    elevation_std_deg: float = Field(40.0, ge=0.0, le=360.0)
+    elevation_clip_deg: ElevationRange = ElevationRange(lo=20.0, hi=160.0)
     # Irradiance at the scene centre in units where a white Lambertian surface facing the
     # light has radiance strength * irradiance_scale / pi (the paper's [5, 20] is in Blender units
     # of an unknown exposure; irradiance_scale sets ours so typical pixels sit near 1).
-    strength: Range = Range(lo=5.0, hi=20.0)
-    irradiance_scale: float = Field(0.5, gt=0.0)
+    strength: LevelRange = LevelRange(lo=5.0, hi=20.0)
+    irradiance_scale: float = Field(0.5, gt=0.0, le=1000.0)
     jitter: float = Field(0.1, ge=0.0, le=0.5, description="relative random variation of strength")
-    distance: float = Field(6.0, gt=0.0, description="point light distance from the scene centre (m)")
-    radius: float = Field(0.1, ge=0.0, description="point light radius (soft shadows)")
+    distance: float = Field(6.0, gt=0.0, le=1000.0, description="point light distance from the scene centre (m)")
+    radius: float = Field(0.1, ge=0.0, le=100.0, description="point light radius (soft shadows)")
     hdri_probability: float = Field(
         0.2, ge=0.0, le=1.0, description="paper: 20% point light + env map, 80% point light alone"
     )
-    hdri_strength: Range = Range(lo=0.3, hi=1.0)
+    hdri_strength: LevelRange = LevelRange(lo=0.3, hi=1.0)
     point_scale_with_hdri: float = Field(0.5, gt=0.0, le=1.0, description="point light is lowered when an HDRI is on")
-    ambient: Range = Range(lo=0.01, hi=0.05)
+    ambient: LevelRange = LevelRange(lo=0.01, hi=0.05)
     room_back_light_deg: float = Field(
         30.0, ge=0.0, le=90.0, description="room scenes: extra light behind the camera within +- this angle"
     )
@@ -269,24 +311,33 @@ MAX_RESOLUTION = 4096  # the paper renders 768; 4096^2 is ~3 min per Cycles bund
 MAX_SAMPLES = 65536
 MAX_STEPS = 10_000_000
 MAX_CFG = 50.0
+MAX_BOUNCES = 1024  # Blender's own limit
+# The render's disk estimate, uncompressed bytes per pixel: a view's maps (albedo float32 RGB, normal
+# float16 RGB, roughness, metallic, mask float16) and a light's (image, diffuse, specular float32 RGB,
+# its preview strip); balls per ball pixel (ball, ball_lambertian float16 RGB). ZIP makes it ~2x smaller.
+VIEW_BYTES_PER_PIXEL, LIGHT_BYTES_PER_PIXEL, BALL_BYTES_PER_PIXEL = 24, 39, 12
+MAX_RENDER_BYTES = 256 * 2**40  # ~8x the paper's profile (30 TiB): a typo'd count, not a dataset
 
 
 class CyclesParams(_Section):
     samples: int = Field(64, ge=1, le=MAX_SAMPLES)
-    adaptive_threshold: float = Field(0.02, ge=0.0, description="Cycles noise threshold; 0 turns adaptive sampling off")
-    adaptive_min_samples: int = Field(16, ge=0)
-    max_bounces: int = Field(4, ge=0)
-    diffuse_bounces: int = Field(2, ge=0)
-    glossy_bounces: int = Field(2, ge=0)
-    transmission_bounces: int = Field(4, ge=0)
-    transparent_max_bounces: int = Field(4, ge=0)
+    adaptive_threshold: float = Field(
+        0.02, ge=0.0, le=1.0, description="Cycles noise threshold; 0 turns adaptive sampling off"
+    )
+    adaptive_min_samples: int = Field(16, ge=0, le=MAX_SAMPLES)
+    max_bounces: int = Field(4, ge=0, le=MAX_BOUNCES)
+    diffuse_bounces: int = Field(2, ge=0, le=MAX_BOUNCES)
+    glossy_bounces: int = Field(2, ge=0, le=MAX_BOUNCES)
+    transmission_bounces: int = Field(4, ge=0, le=MAX_BOUNCES)
+    transparent_max_bounces: int = Field(4, ge=0, le=MAX_BOUNCES)
     world_map_resolution: int = Field(
         256,
         ge=16,
+        le=16384,
         description="importance map of the world (HDRI), built on every world edit; Blender's AUTOMATIC map costs ~0.8 s per HDRI render",
     )
     device: Literal["CPU", "GPU"] = "CPU"
-    threads: int = Field(0, ge=0, description="0 = all cores")
+    threads: int = Field(0, ge=0, le=4096, description="0 = all cores")
 
 
 class ClusterParams(_Section):
@@ -305,7 +356,7 @@ class ClusterParams(_Section):
         "cluster of `workers` processes on this machine",
     )
     workers: int = Field(2, ge=1, le=4096, description="processes of the local cluster (address: null)")
-    scenes_per_task: int = Field(4, ge=1, description="scenes per partition: one task, one marker")
+    scenes_per_task: int = Field(4, ge=1, le=MAX_SCENES, description="scenes per partition: one task, one marker")
     retries: int = Field(
         2,
         ge=0,
@@ -318,8 +369,8 @@ class ClusterParams(_Section):
 class RenderParams(_Section):
     resolution: int = Field(128, ge=8, le=MAX_RESOLUTION)
     scenes: SplitCounts = SplitCounts(train=8, val=1, test=3)
-    views_per_scene: int = Field(4, ge=1)
-    lights_per_view: int = Field(3, ge=1)
+    views_per_scene: int = Field(4, ge=1, le=MAX_PER_SCENE)
+    lights_per_view: int = Field(3, ge=1, le=MAX_PER_SCENE)
     cycles: CyclesParams = CyclesParams()
     light: LightParams = LightParams()
     hdri: HdriParams = HdriParams()
@@ -333,7 +384,7 @@ class RenderParams(_Section):
         32, ge=1, le=MAX_SAMPLES, description="Cycles samples for the ball (adaptive threshold as the scene)"
     )
     ball_min_samples: int = Field(
-        4, ge=0, description="adaptive sampling's minimum for the ball (0 = Cycles' automatic)"
+        4, ge=0, le=MAX_SAMPLES, description="adaptive sampling's minimum for the ball (0 = Cycles' automatic)"
     )
     assets: tuple[str, ...] = Field(
         (), description=".glb/.gltf/.obj/.blend files placed beside or instead of procedural shapes"
@@ -375,15 +426,41 @@ class RenderParams(_Section):
             raise ValueError("assets_only is true but no assets are listed")
         return self
 
+    def estimated_bytes(self) -> int:
+        """Bytes the renders take on disk before compression (the constants above MAX_RENDER_BYTES)."""
+        scenes = self.scenes.train + self.scenes.val + self.scenes.test
+        per_view = VIEW_BYTES_PER_PIXEL * self.resolution**2 + self.lights_per_view * (
+            LIGHT_BYTES_PER_PIXEL * self.resolution**2 + BALL_BYTES_PER_PIXEL * self.ball_resolution**2
+        )
+        return scenes * self.views_per_scene * per_view
+
+    @model_validator(mode="after")
+    def _fits_a_disk(self) -> RenderParams:
+        need = self.estimated_bytes()
+        if need > MAX_RENDER_BYTES:
+            raise ValueError(
+                f"scenes x views_per_scene x lights_per_view at resolution {self.resolution} would write about "
+                f"{need / 2**40:.0f} TiB of renders (uncompressed estimate), over the limit of "
+                f"{MAX_RENDER_BYTES / 2**40:.0f} TiB: lower the scene counts, views, lights or resolution"
+            )
+        return self
+
 
 DOMAINS = ("albedo", "normal", "roughness", "metallic")  # stage 1's outputs, in one-hot order
+MAX_CHANNELS = 8192  # a UNet level's width (SD2's widest: 1280)
+MAX_LEVELS = 8  # UNet levels: each halves the latent
+MAX_UNET_PARAMS = 2_000_000_000  # ~32 GiB to train with AdamW (SD2's UNet: 0.87e9)
+MAX_BATCH = 4096  # samples per training step or per sampling call
+MAX_ENSEMBLE = 256
+MAX_LOSS_WEIGHT = 1000.0
+MAX_SWEEP = 64  # points per factor of the trade sweep
 
 
 class CodecParams(_Section):
     kind: Literal["pixel", "vae"] = Field(
         "pixel", description="pixel = lossless pixel-unshuffle (no weights); vae = AutoencoderKL"
     )
-    factor: int = Field(4, ge=1, description="pixel codec downsampling factor")
+    factor: int = Field(4, ge=1, le=64, description="pixel codec downsampling factor")
     path: str | None = Field(
         None, description="local AutoencoderKL folder (e.g. Stable Diffusion 2's vae/) for kind: vae"
     )
@@ -406,10 +483,17 @@ class UNetParams(_Section):
         None,
         description="init pretrained: a local UNet folder; init base: a pilight-base folder (null = the shipped one)",
     )
-    block_out_channels: tuple[int, ...] = (64, 128, 128)
-    layers_per_block: int = Field(1, ge=1)
-    attention_head_dim: int = Field(8, ge=1)
-    cross_attention_dim: int = Field(128, ge=1)
+    block_out_channels: tuple[Annotated[int, Field(ge=1, le=MAX_CHANNELS)], ...] = Field(
+        (64, 128, 128),
+        min_length=1,
+        max_length=MAX_LEVELS,
+        description="channels per level; each level halves the latent",
+    )
+    layers_per_block: int = Field(1, ge=1, le=16)
+    attention_head_dim: int = Field(
+        8, ge=1, le=MAX_CHANNELS, description="diffusers' name for the number of attention heads per block"
+    )
+    cross_attention_dim: int = Field(128, ge=1, le=MAX_CHANNELS)
 
     @model_validator(mode="after")
     def _path(self, info: ValidationInfo) -> UNetParams:
@@ -417,6 +501,48 @@ class UNetParams(_Section):
             raise ValueError("unet.init is 'pretrained' but unet.path is not set (a local UNet folder)")
         _weights_folder(self.path, "unet.path", info)
         return self
+
+    @model_validator(mode="after")
+    def _structure(self) -> UNetParams:
+        """The channel list, the GroupNorm groups and the heads must fit each other (pilight.train.build):
+        a mismatch died in a modulo by zero or in min() of an empty list, far from the key."""
+        ch = self.block_out_channels
+        groups = min(32, min(ch))
+        odd = [c for c in ch if c % groups]
+        if odd:
+            raise ValueError(
+                f"block_out_channels {list(ch)}: every level's channels must be divisible by {groups}, the "
+                f"GroupNorm groups (min(32, smallest level)); {odd} are not"
+            )
+        # attention runs at every level but the first (and in the mid block, at the last level's width)
+        attended = sorted(set(ch[1:] + ch[-1:]))
+        bad = [c for c in attended if c % self.attention_head_dim]
+        if bad:
+            raise ValueError(
+                f"attention_head_dim {self.attention_head_dim} (the number of heads) must divide the channels of "
+                f"every attention level; {bad} of block_out_channels {list(ch)} are not divisible by it"
+            )
+        params = self.estimated_parameters()
+        if self.init != "pretrained" and params > MAX_UNET_PARAMS:
+            raise ValueError(
+                f"block_out_channels {list(ch)} with layers_per_block {self.layers_per_block} build a UNet of about "
+                f"{params / 1e9:.1f}e9 parameters (~{16 * params / 2**30:.0f} GiB to train with AdamW), over the "
+                f"limit of {MAX_UNET_PARAMS / 1e9:.0f}e9"
+            )
+        return self
+
+    def estimated_parameters(self) -> int:
+        """About how many parameters build_stack's UNet has (within ~10% for the configs in this repo):
+        two 3x3 convolutions per resnet, attention at every level but the first, (2L + 1) blocks per level
+        down and up, and the mid block; x1.6 for what the sum leaves out (norms, embeddings, skips)."""
+        ch, layers, x = self.block_out_channels, self.layers_per_block, self.cross_attention_dim
+        total = 0
+        for i, c in enumerate(ch):
+            per = 18 * c * c + ((12 * c * c + 2 * c * x) if i > 0 or len(ch) == 1 else 0)
+            total += (2 * layers + 1) * per
+        c = ch[-1]
+        total += 48 * c * c + 2 * c * x
+        return int(1.6 * total)
 
 
 class ConditioningParams(_Section):
@@ -434,7 +560,9 @@ class ConditioningParams(_Section):
 
 
 class ScheduleParams(_Section):
-    num_train_timesteps: int = Field(1000, ge=2)
+    num_train_timesteps: int = Field(
+        1000, ge=2, le=100_000, description="the paper: 1000; the schedule's arrays have one entry per step"
+    )
     beta_schedule: Literal["linear", "scaled_linear", "squaredcos_cap_v2"] = "scaled_linear"
     rescale_zero_snr: bool = False
     timestep_spacing: Literal["leading", "trailing", "linspace"] = "leading"
@@ -457,15 +585,20 @@ class ScheduleParams(_Section):
 
 class TrainParams(_Section):
     steps: int = Field(600, ge=1, le=MAX_STEPS)
-    batch_size: int = Field(2, ge=1, description="samples per step; each carries every domain")
+    batch_size: int = Field(2, ge=1, le=MAX_BATCH, description="samples per step; each carries every domain")
     lr: float = Field(2e-4, gt=0, le=1.0)
-    weight_decay: float = Field(1e-2, ge=0)
-    warmup_steps: int = Field(20, ge=0)
+    weight_decay: float = Field(
+        1e-2,
+        ge=0,
+        le=1.0,
+        description="AdamW's decoupled decay: each step multiplies the weights by 1 - lr x weight_decay",
+    )
+    warmup_steps: int = Field(20, ge=0, le=MAX_STEPS)
     lr_schedule: Literal["constant", "cosine"] = Field(
         "constant", description="after warmup: constant, or a cosine decay to 0 at `steps`"
     )
-    grad_accum: int = Field(1, ge=1)
-    max_grad_norm: float | None = Field(1.0, gt=0, description="gradient-norm clip; null = no clipping")
+    grad_accum: int = Field(1, ge=1, le=1024)
+    max_grad_norm: float | None = Field(1.0, gt=0, le=1e6, description="gradient-norm clip; null = no clipping")
     mixed_precision: Literal["fp32", "bf16", "fp16", "auto"] = Field(
         "fp32",
         description="fp32 = no mixed precision (accelerate's 'no'); auto = bf16 on a GPU or a CPU with native "
@@ -492,11 +625,11 @@ class TrainParams(_Section):
         description="log each loss term's share of the gradient norm every N steps (stage 2; one backward "
         "per term, pilight.train.grad_shares); 0 = off",
     )
-    checkpoint_every: int = Field(200, ge=1)
-    keep_checkpoints: int = Field(2, ge=1)
-    log_every: int = Field(10, ge=1)
-    image_every: int = Field(200, ge=1)
-    num_workers: int = Field(0, ge=0)
+    checkpoint_every: int = Field(200, ge=1, le=MAX_STEPS)
+    keep_checkpoints: int = Field(2, ge=1, le=1000, description="each holds the weights and AdamW's state")
+    log_every: int = Field(10, ge=1, le=MAX_STEPS)
+    image_every: int = Field(200, ge=1, le=MAX_STEPS)
+    num_workers: int = Field(0, ge=0, le=256)
 
     @field_validator("mixed_precision", mode="before")
     @classmethod
@@ -581,13 +714,14 @@ class RelightParams(ModelParams):
     """Stage 2: L = L_vpred + (1/t)(lambda_ds L_DS + lambda_ps L_PS + lambda_rec L_rec)."""
 
     decomposition: bool = Field(True, description="false = the paper's ablation without the diffuse/specular branches")
-    lambda_ds: float = Field(1.0, ge=0.0, description="lambda_1, diffuse-shading loss")
-    lambda_ps: float = Field(1.0, ge=0.0, description="lambda_2, physical-shading loss")
-    lambda_rec: float = Field(0.1, ge=0.0, description="lambda_3, reconstruction (feature) loss")
-    t_min: float = Field(1.0, gt=0.0, description="floor of t in the 1/t weight")
+    lambda_ds: float = Field(1.0, ge=0.0, le=MAX_LOSS_WEIGHT, description="lambda_1, diffuse-shading loss")
+    lambda_ps: float = Field(1.0, ge=0.0, le=MAX_LOSS_WEIGHT, description="lambda_2, physical-shading loss")
+    lambda_rec: float = Field(0.1, ge=0.0, le=MAX_LOSS_WEIGHT, description="lambda_3, reconstruction (feature) loss")
+    t_min: float = Field(1.0, gt=0.0, le=100_000.0, description="floor of t in the 1/t weight")
     lambda_image: float = Field(
         0.0,
         ge=0.0,
+        le=MAX_LOSS_WEIGHT,
         description="ours: the formed relit image vs the target (display-space "
         "MSE) on samples at t = T-1, where single-step inference "
         "runs (E2E-FT); 0 = the paper",
@@ -684,8 +818,18 @@ class SamplingParams(_Section):
     steps: int = Field(10, ge=1, le=10_000)
     cfg_scale: float = Field(1.0, ge=0.0, le=MAX_CFG, description="the paper: 1.0 in stage 1, 1.5 in stage 2")
     timestep_spacing: Literal["leading", "trailing", "linspace"] = "trailing"
-    ensemble: int = Field(1, ge=1)
-    batch_size: int = Field(4, ge=1)
+    ensemble: int = Field(1, ge=1, le=MAX_ENSEMBLE)
+    batch_size: int = Field(4, ge=1, le=MAX_BATCH)
+
+    @model_validator(mode="after")
+    def _items_per_call(self) -> SamplingParams:
+        # one UNet call holds batch_size x ensemble samples (x2 with CFG, x the views of a sample)
+        if self.batch_size * self.ensemble > MAX_BATCH:
+            raise ValueError(
+                f"batch_size {self.batch_size} x ensemble {self.ensemble} = {self.batch_size * self.ensemble} "
+                f"samples in one UNet call, over the limit of {MAX_BATCH}: lower either"
+            )
+        return self
 
 
 class RelightInferParams(SamplingParams):
@@ -709,15 +853,23 @@ class InferIntrinsicsParams(SamplingParams):
 class TradeParams(_Section):
     """The speed/accuracy sweep (the `trade` stage): one factor at a time around the infer params."""
 
-    images: int = Field(4, ge=1, description="test images (stage 1) and test pairs (stage 2) per sweep point")
-    steps: tuple[int, ...] = Field((1, 2, 4, 10, 25, 50), description="DDIM steps, swept for each spacing")
-    spacings: tuple[Literal["leading", "trailing", "linspace"], ...] = ("leading", "trailing")
-    intrinsics_cfg: tuple[float, ...] = Field((1.0, 1.5, 2.0, 2.5), description="the paper's Table 5 range")
-    relight_cfg: tuple[float, ...] = (1.0, 1.5, 2.0)
-    ensemble: tuple[int, ...] = (1, 2, 4)
-    render_spp: tuple[int, ...] = Field((4, 16, 64, 256), description="render side: samples per pixel")
+    images: int = Field(
+        4, ge=1, le=10_000, description="test images (stage 1) and test pairs (stage 2) per sweep point"
+    )
+    steps: tuple[Annotated[int, Field(ge=1, le=10_000)], ...] = Field(
+        (1, 2, 4, 10, 25, 50), max_length=MAX_SWEEP, description="DDIM steps, swept for each spacing"
+    )
+    spacings: tuple[Literal["leading", "trailing", "linspace"], ...] = Field(("leading", "trailing"), max_length=3)
+    intrinsics_cfg: tuple[Annotated[float, Field(ge=0.0, le=MAX_CFG)], ...] = Field(
+        (1.0, 1.5, 2.0, 2.5), max_length=MAX_SWEEP, description="the paper's Table 5 range"
+    )
+    relight_cfg: tuple[Annotated[float, Field(ge=0.0, le=MAX_CFG)], ...] = Field((1.0, 1.5, 2.0), max_length=MAX_SWEEP)
+    ensemble: tuple[Annotated[int, Field(ge=1, le=MAX_ENSEMBLE)], ...] = Field((1, 2, 4), max_length=MAX_SWEEP)
+    render_spp: tuple[Annotated[int, Field(ge=1, le=MAX_SAMPLES)], ...] = Field(
+        (4, 16, 64, 256), max_length=MAX_SWEEP, description="render side: samples per pixel"
+    )
     render_reference_spp: int = Field(
-        1024, ge=1, description="the noise-free reference the spp points are compared with"
+        1024, ge=1, le=MAX_SAMPLES, description="the noise-free reference the spp points are compared with"
     )
 
     @field_validator("steps", "ensemble", "render_spp")
@@ -740,9 +892,11 @@ class EvaluateParams(_Section):
     lpips_backbone: str | None = Field(
         None, description="local safetensors of the LPIPS backbone; null = LPIPS reported as null with the reason"
     )
-    grid_images: int = Field(4, ge=1, description="test images (pairs) in the intrinsics (relight) grid of reports/")
+    grid_images: int = Field(
+        4, ge=1, le=256, description="test images (pairs) in the intrinsics (relight) grid of reports/"
+    )
     relight_lights: int = Field(
-        6, ge=1, description="analytic lights around one test image in the relit-under-several-lights grid"
+        6, ge=1, le=64, description="analytic lights around one test image in the relit-under-several-lights grid"
     )
     trade: TradeParams = TradeParams()
 
@@ -756,10 +910,24 @@ class EvaluateParams(_Section):
 
 from pilight.data.shard_params import ShardParams  # noqa: E402  (the shard stage's own module)
 
+_SHARD_FIELDS = ShardParams.model_fields
+
+
+class ShardSection(ShardParams, _Section):
+    """The shard stage's own ShardParams with the upper bounds every section has (issue 36), refusing
+    booleans for numbers and empty sub-sections like every other section."""
+
+    maxcount: int = Field(1000, ge=1, le=10_000_000, description=_SHARD_FIELDS["maxcount"].description)
+    maxsize: int = Field(500_000_000, ge=1, le=2**40, description=_SHARD_FIELDS["maxsize"].description)
+    pairs_per_view: int | None = Field(
+        None, ge=0, le=1_000_000, description=_SHARD_FIELDS["pairs_per_view"].description
+    )
+
+
 SECTIONS: dict[str, type[BaseModel]] = {
     "base": BaseParams,
     "render": RenderParams,
-    "shard": ShardParams,
+    "shard": ShardSection,
     "intrinsics": IntrinsicsParams,
     "infer_intrinsics": InferIntrinsicsParams,
     "relight": RelightParams,
@@ -801,7 +969,15 @@ def read_params(path: str | Path) -> dict:
     if not path.is_file():
         raise ParamsError(f"{path}: params file not found")
     try:
-        raw = yaml.load(path.read_text(), Loader=UniqueKeyLoader) or {}
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ParamsError(
+            f"{path}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start}); save it as UTF-8"
+        ) from None
+    except OSError as exc:
+        raise ParamsError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    try:
+        raw = yaml.load(text, Loader=UniqueKeyLoader) or {}
     except yaml.YAMLError as exc:
         raise ParamsError(f"{path}: not valid YAML ({exc})") from exc
     if not isinstance(raw, dict):
@@ -825,8 +1001,16 @@ def load_section(
 
 
 def _validate(model: type[BaseModel], name: str, raw, where: str | Path, check_paths: bool) -> BaseModel:
+    # `render: null`, `render: 0`, `render: []` or `render: {}` took the class defaults silently (the render
+    # stage then started the class's 144 bundles, not the file's): a section is a mapping with keys.
+    if not isinstance(raw, dict):
+        kind = {"list": "a list", "int": "a number", "float": "a number", "str": "a string", "bool": "a boolean"}
+        shown = "null" if raw is None else f"{kind.get(type(raw).__name__, type(raw).__name__)} ({raw!r})"
+        raise ParamsError(f"{where}: section '{name}' is {shown}, not a mapping of its keys")
+    if not raw:
+        raise ParamsError(f"{where}: section '{name}' is empty; give its keys (params.yaml has them all)")
     try:
-        return model.model_validate(raw or {}, context={"check_paths": check_paths})
+        return model.model_validate(raw, context={"check_paths": check_paths, "from_file": True})
     except ValidationError as exc:
         raise ParamsError(f"{where}: " + _format(name, exc)) from None
 
