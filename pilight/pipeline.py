@@ -18,6 +18,12 @@ mask (all ones, or the photo's alpha: a photo has no ground-truth mask), the lig
 memory estimate checked before anything large is allocated.
 
 Stage 1 runs once per photo, however many lights stage 2 is asked for.
+
+Integrity (issue 36): each stage's folder carries its manifest (``pilight.train.build``: weights and
+config.json), and a ``save_pretrained`` folder one more, ``checksums.json`` beside ``pipeline.json``,
+covering pipeline.json and both stage manifests. ``from_pretrained`` requires them; a folder made by
+hand loads with ``trust_unverified=True``, announced. pipeline.json and any ``from_pretrained``
+override are validated by the models params.yaml's keys are (``PipelineSettings``).
 """
 
 from __future__ import annotations
@@ -27,16 +33,17 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
+from pydantic import Field
 
 from pilight import atomic
 from pilight.detail import resize, with_input_detail
 from pilight.lights import Light
-from pilight.params import DOMAINS, SamplingParams
+from pilight.params import DOMAINS, BaseParams, RenderParams, SamplingParams, _Section
 from pilight.photo import Photo, as_photo, check_size, lcm, processing_size
 from pilight.relight.intensity import relative_light
 
@@ -55,6 +62,9 @@ ACT_FLOATS_PER_CHANNEL_PIXEL = 40
 HOST_FLOATS_DECOMPOSE = 2 * (4 + 8)  # (rgb + mask + 8 output channels), times 2 for resize copies
 HOST_FLOATS_PER_LIGHT = 2 * 9  # relit, D, S
 MEMORY_FRACTION = 0.8  # default limit: this share of the machine's (or the GPU's) memory
+MAX_PROCESSING_RESOLUTION = 16384  # longer side; the memory guard is the real limit, this one catches typos
+MANIFEST = "checksums.json"  # a save_pretrained folder's own manifest (pipeline.json + the stage manifests)
+PIPELINE_COVERED = (PIPELINE_FILE, "intrinsics/checksums.json", "relight/checksums.json")
 
 
 class PipelineError(ValueError):
@@ -63,6 +73,23 @@ class PipelineError(ValueError):
 
 class MemoryLimitError(PipelineError):
     """Processing would need more memory than allowed; raised before anything large is allocated."""
+
+
+class PipelineSettings(_Section):
+    """pipeline.json's keys, validated as params.yaml's are (the same constraints as render.ball_resolution,
+    base.seed and the sampling sections): a saved ``processing_resolution: -5`` was a torch traceback."""
+
+    processing_resolution: int = Field(
+        DEFAULT_RESOLUTION, ge=0, le=MAX_PROCESSING_RESOLUTION, description="longer side; 0 = the photo's own"
+    )
+    ball_resolution: Annotated[int, *RenderParams.model_fields["ball_resolution"].metadata] = 32
+    seed: Annotated[int, *BaseParams.model_fields["seed"].metadata] = 42
+    intrinsics_sampling: SamplingParams
+    relight_sampling: SamplingParams
+
+
+def _settings_error(where: str, exc) -> str:
+    return "; ".join(f"{'.'.join(map(str, e['loc']))} = {e.get('input')!r}: {e['msg']}" for e in exc.errors())
 
 
 @dataclass(frozen=True)
@@ -86,18 +113,32 @@ class PipelineConfig:
 
     @classmethod
     def from_json(cls, d: dict, where: str) -> PipelineConfig:
+        """``d`` (pipeline.json's content) validated by ``PipelineSettings``; PipelineError naming ``where`` and the key."""
+        from pydantic import ValidationError
+
+        if not isinstance(d, dict):
+            raise PipelineError(f"{where}: not a valid pipeline config (want an object, got {type(d).__name__})")
+        try:
+            s = PipelineSettings.model_validate(d)
+        except ValidationError as exc:
+            raise PipelineError(f"{where}: not a valid pipeline config: {_settings_error(where, exc)}") from None
+        return cls(**{k: getattr(s, k) for k in PipelineSettings.model_fields})
+
+    def validated(self, where: str) -> PipelineConfig:
+        """This config checked by ``PipelineSettings`` (after overrides): PipelineError naming the key."""
         from pydantic import ValidationError
 
         try:
-            return cls(
-                processing_resolution=int(d["processing_resolution"]),
-                ball_resolution=int(d["ball_resolution"]),
-                seed=int(d["seed"]),
-                intrinsics_sampling=SamplingParams.model_validate(d["intrinsics_sampling"]),
-                relight_sampling=SamplingParams.model_validate(d["relight_sampling"]),
+            PipelineSettings.model_validate(
+                {
+                    **{k: getattr(self, k) for k in PipelineSettings.model_fields},
+                    "intrinsics_sampling": self.intrinsics_sampling.model_dump(),
+                    "relight_sampling": self.relight_sampling.model_dump(),
+                }
             )
-        except (KeyError, TypeError, ValueError, ValidationError) as exc:
-            raise PipelineError(f"{where}: not a valid pipeline config ({exc})") from None
+        except ValidationError as exc:
+            raise PipelineError(f"{where}: {_settings_error(where, exc)}") from None
+        return self
 
     @classmethod
     def from_params(cls, params_path: str | Path) -> PipelineConfig:
@@ -174,13 +215,13 @@ def _format_validation(stage: str, exc) -> str:
     return "; ".join(f"{'.'.join(map(str, (stage, *e['loc'])))} = {e.get('input')!r}: {e['msg']}" for e in exc.errors())
 
 
-def load_stage(folder: Path, stage: str, device: torch.device):
-    """One trained model (config.json + model.safetensors) -> its Task, in eval mode on ``device``,
-    and the params dict it was saved with."""
+def load_stage(folder: Path, stage: str, device: torch.device, *, trust_unverified: bool = False):
+    """One trained model (config.json + model.safetensors, verified by its manifest before either is read)
+    -> its Task, in eval mode on ``device``, and the params dict it was saved with."""
     from pydantic import ValidationError
 
     from pilight.params import IntrinsicsParams, RelightParams
-    from pilight.train.build import ModelError, load_model
+    from pilight.train.build import ModelError, load_model, verify_model_folder
     from pilight.train.intrinsics import IntrinsicsTask
     from pilight.train.relight import RelightTask
 
@@ -194,7 +235,13 @@ def load_stage(folder: Path, stage: str, device: torch.device):
             "intrinsics/ and relight/ (each config.json + model.safetensors)"
         )
     try:
-        saved = json.loads(cfg.read_text())["params"]
+        verify_model_folder(d, trust_unverified=trust_unverified)
+    except ModelError as exc:
+        raise PipelineError(
+            str(exc).replace("rerun the training stage", "retrain with `dvc repro train_relight`")
+        ) from None
+    try:
+        saved = json.loads(cfg.read_text(encoding="utf-8"))["params"]
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise PipelineError(f"{cfg}: unreadable model config ({exc}); retrain with `dvc repro train_relight`") from None
     raw = dict(saved)
@@ -210,7 +257,7 @@ def load_stage(folder: Path, stage: str, device: torch.device):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # e.g. decomposition: false is reported by the stages, not here
             task = IntrinsicsTask(p, d, seed=0) if stage == "intrinsics" else RelightTask(p, d, seed=0)
-        load_model(task.stack, d)
+        load_model(task.stack, d, verified=True)
     except ModelError as exc:
         raise PipelineError(f"{exc} (the weights do not fit {cfg}: retrain with `dvc repro train_relight`)") from None
     task.stack.model.eval().to(device)
@@ -237,13 +284,23 @@ class PILightPipeline:
     # --- loading and saving -------------------------------------------------------------------
     @classmethod
     def from_pretrained(
-        cls, folder: str | Path = "models", *, device: str = "auto", params: str | Path | None = None, **overrides
+        cls,
+        folder: str | Path = "models",
+        *,
+        device: str = "auto",
+        params: str | Path | None = None,
+        trust_unverified: bool = False,
+        **overrides,
     ) -> PILightPipeline:
         """Load ``folder/intrinsics`` and ``folder/relight``.
 
         Settings come from ``folder/pipeline.json`` (written by ``save_pretrained``), else from
         ``params`` (a params.yaml: render.resolution, infer_intrinsics, relight_infer), else the
-        defaults; ``overrides`` (PipelineConfig fields) win over all three."""
+        defaults; ``overrides`` (PipelineConfig fields) win over all three. Every file that decides what
+        the pipeline computes is checked against its manifest first (module docstring); a folder made by
+        hand, without manifests, loads with ``trust_unverified=True`` and an UnverifiedModelWarning."""
+        from pilight.train.build import ModelError, verify_manifest
+
         folder = Path(folder)
         if not folder.is_dir():
             raise PipelineError(
@@ -251,32 +308,47 @@ class PILightPipeline:
                 "both stages into models/), or pass --models DIR"
             )
         config = PipelineConfig()
-        if (folder / PIPELINE_FILE).is_file():
+        pipeline_file = folder / PIPELINE_FILE
+        if pipeline_file.is_file() or (folder / MANIFEST).is_file():
+            # a save_pretrained folder: its manifest vouches for pipeline.json and both stage manifests
             try:
-                config = PipelineConfig.from_json(
-                    json.loads((folder / PIPELINE_FILE).read_text()), str(folder / PIPELINE_FILE)
-                )
-            except ValueError as exc:
-                raise PipelineError(f"{folder / PIPELINE_FILE}: {exc}") from None
+                verify_manifest(folder, PIPELINE_COVERED, trust_unverified=trust_unverified, fix="save it again")
+            except ModelError as exc:
+                raise PipelineError(str(exc)) from None
+        if pipeline_file.is_file():
+            try:
+                raw = json.loads(pipeline_file.read_text(encoding="utf-8"))
+            except (OSError, ValueError) as exc:
+                raise PipelineError(f"{pipeline_file}: unreadable ({exc})") from None
+            config = PipelineConfig.from_json(raw, str(pipeline_file))
         elif params is not None and Path(params).is_file():
             config = PipelineConfig.from_params(params)
-        config = replace(config, **overrides)
+        unknown = sorted(set(overrides) - set(PipelineSettings.model_fields))
+        if unknown:
+            raise PipelineError(
+                f"from_pretrained: unknown setting(s) {unknown}; known: {list(PipelineSettings.model_fields)}"
+            )
+        config = replace(config, **overrides).validated("from_pretrained" if overrides else str(folder))
         dev = pick_device(device) if isinstance(device, str) else torch.device(device)
-        t1, s1 = load_stage(folder, "intrinsics", dev)
-        t2, s2 = load_stage(folder, "relight", dev)
+        t1, s1 = load_stage(folder, "intrinsics", dev, trust_unverified=trust_unverified)
+        t2, s2 = load_stage(folder, "relight", dev, trust_unverified=trust_unverified)
         return cls(t1, t2, config, dev, {"intrinsics": s1, "relight": s2})
 
     def save_pretrained(self, folder: str | Path, dtype: torch.dtype | None = None) -> Path:
-        """``folder/intrinsics``, ``folder/relight`` (each model.safetensors + config.json, the layout
-        of the pipeline's models/) and ``folder/pipeline.json``; every file written, then renamed.
-        ``dtype`` (e.g. torch.float16): the weights' storage type (they load back as float32)."""
-        from pilight.train.build import save_model
+        """``folder/intrinsics``, ``folder/relight`` (each model.safetensors + config.json + checksums.json,
+        the layout of the pipeline's models/), ``folder/pipeline.json`` and, last, ``folder/checksums.json``
+        over pipeline.json and both stage manifests; every file written, then renamed, so what this writes
+        always loads with ``from_pretrained``. ``dtype`` (e.g. torch.float16): the weights' storage type
+        (they load back as float32)."""
+        from pilight.train.build import save_model, write_manifest
 
         folder = Path(folder)
+        self.config.validated("save_pretrained")
         for stage, task in (("intrinsics", self.intrinsics), ("relight", self.relight_task)):
             params = self.saved_params.get(stage) or task.p.model_dump(mode="json")
             save_model(task.stack, folder / stage, params, dtype=dtype)
         atomic.write_json(folder / PIPELINE_FILE, self.config.to_json(), sort_keys=True)
+        write_manifest(folder, PIPELINE_COVERED)
         return folder
 
     def stale_keys(self, params_path: str | Path) -> dict[str, list[str]]:
@@ -383,6 +455,13 @@ class PILightPipeline:
             m = torch.ones(1, 1, ph, pw)
         else:
             m = (resize(torch.from_numpy(photo.mask)[None, None], (ph, pw)) >= 0.5).float()
+            if not bool(m.any()):  # relit as if empty before (issue 36)
+                from pilight.photo import PhotoError
+
+                raise PhotoError(
+                    f"{photo.name}: its alpha mask ({int(photo.mask.sum())} pixel(s)) vanishes at the processing "
+                    f"size {pw}x{ph}: nothing is left to process; use a larger --resolution or a larger mask"
+                )
         return photo, x, m
 
     @torch.no_grad()

@@ -25,7 +25,9 @@ that check), so hand-damaged folders are skipped too.
 ``checksums.json`` holds the sha256 of every file of the folder, written last inside the temporary
 folder.  A header parses whatever happens to the tensor bytes after it, so only the checksum
 catches flipped bytes in the weights (resumed silently before: exit 0, final loss 5324 against
-0.36).  :func:`find_resume` verifies the newest checkpoint before resuming; a damaged one is named,
+0.36).  It is required (issue 36): a folder without it, or whose manifest leaves out one of its
+files, is damaged like one whose bytes differ (deleting the manifest once let damaged weights resume
+and reach models/ with a fresh checksum).  :func:`find_resume` verifies the newest checkpoint before resuming; a damaged one is named,
 and falling back to an older one (or to step 0) is said in so many words.  Weights holding NaN or
 Inf are never written (:class:`NonFiniteError`): a diverged run must not replace the last good
 checkpoint.
@@ -114,8 +116,7 @@ def list_checkpoints(checkpoint_dir: Path) -> list[Path]:
 
 def damage(path: Path) -> str | None:
     """What is wrong with the checkpoint folder ``path`` (None: every file is there, parses and
-    matches its checksum).  A folder written before checksums were recorded has none to match;
-    it passes if its headers parse, as it always did."""
+    matches its checksum in ``checksums.json``, which must exist and cover every file)."""
     path = Path(path)
     for name in FILES:
         f = path / name
@@ -128,13 +129,17 @@ def damage(path: Path) -> str | None:
             return f"{name}: unreadable safetensors header ({exc})"
     sums = path / CHECKSUM_FILE
     if not sums.is_file():
-        return None
+        return f"{CHECKSUM_FILE} missing: nothing vouches for the weights"
     try:
         recorded = json.loads(sums.read_text(encoding="utf-8"))["sha256"]
         if not isinstance(recorded, dict):
             raise ValueError("'sha256' is not an object")
     except (OSError, ValueError, KeyError, TypeError) as exc:
         return f"{CHECKSUM_FILE}: unreadable ({exc})"
+    present = FILES + ((EMA_FILE,) if (path / EMA_FILE).is_file() else ())
+    uncovered = [name for name in present if name not in recorded]
+    if uncovered:
+        return f"{CHECKSUM_FILE} does not cover {', '.join(uncovered)}"
     for name, digest in sorted(recorded.items()):
         f = path / name
         if not f.is_file():
@@ -435,6 +440,7 @@ def save_checkpoint(
         sums = {"sha256": {name: sha256_file(tmp / name) for name in names}}
         (tmp / CHECKSUM_FILE).write_text(json.dumps(sums, indent=1, sort_keys=True) + "\n", encoding="utf-8")
         for name in names + (CHECKSUM_FILE,):
+            os.chmod(tmp / name, atomic.file_mode())  # safetensors creates its files 0600 whatever the umask
             _fsync(tmp / name)
         _fsync(tmp)
     except OSError as exc:  # a full disk or a read-only folder: name the checkpoint, not a temporary

@@ -36,11 +36,14 @@ def test_round_trip_with_checksum(tmp_path: Path):
 
 def test_truncated_model_is_a_message(tmp_path: Path):
     _, d = _saved(tmp_path)
-    (d / CHECKSUM_FILE).unlink()  # the safetensors check on its own (a model saved before checksums)
+    (d / CHECKSUM_FILE).unlink()  # the safetensors check on its own (a folder made by hand, trusted)
     f = d / MODEL_FILE
     f.write_bytes(f.read_bytes()[:-9])
-    with pytest.raises(ModelError, match=rf"{f}: unreadable safetensors file"):
-        load_model(_stack(), d)
+    with (
+        pytest.warns(UserWarning, match="UNVERIFIED"),
+        pytest.raises(ModelError, match=rf"{f}: unreadable safetensors"),
+    ):
+        load_model(_stack(), d, trust_unverified=True)
 
 
 def test_flipped_weight_bytes_are_caught(tmp_path: Path):
@@ -81,4 +84,4 @@ def test_same_weights_give_the_same_bytes(tmp_path: Path):
     save_model(_stack(), tmp_path / "b", {"p": 1})
     for name in (MODEL_FILE, "config.json", CHECKSUM_FILE):
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
-    assert json.loads((tmp_path / "a" / CHECKSUM_FILE).read_text())["sha256"].keys() == {MODEL_FILE}
+    assert json.loads((tmp_path / "a" / CHECKSUM_FILE).read_text())["sha256"].keys() == {MODEL_FILE, "config.json"}

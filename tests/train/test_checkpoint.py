@@ -170,13 +170,14 @@ def test_truncated_only_checkpoint_says_training_restarts(tmp_path: Path):
     assert any("starts from step 0" in n for n in notes)
 
 
-def test_checkpoint_without_checksums_still_resumes(tmp_path: Path):
-    # Folders written before checksums existed keep resuming (headers checked, as before).
+def test_checkpoint_without_checksums_is_not_resumed(tmp_path: Path):
+    # Issue 36: a missing manifest is damage, not a pass (it let flipped weights resume unseen).
     model, opt, sched = _setup()
     _train_a_bit(model, opt, sched, 1)
     path = _save(tmp_path, 2, model, opt, sched)
     (path / ckpt.CHECKSUM_FILE).unlink()
-    assert ckpt.find_resume(tmp_path) == (path, [])
+    found, notes = ckpt.find_resume(tmp_path)
+    assert found is None and any("checksums.json missing" in n for n in notes), notes
 
 
 def test_non_finite_weights_are_never_checkpointed(tmp_path: Path):
