@@ -8,8 +8,14 @@
 
 Photos: PNG / JPEG / TIFF (sRGB, 8 or 16 bit, EXIF orientation, alpha = mask, gray) and EXR / HDR
 (linear); files, folders (their photos, not recursive) or quoted globs. Outputs go to
-OUT/<photo name>/ (relight: OUT/<photo name>/<light>/), EXR linear plus PNG previews; every file
-is written, then renamed, and outputs already complete are skipped (--overwrite redoes them).
+OUT/<photo name>/ (relight: OUT/<photo name>/<light>/), EXR linear plus PNG previews. A light's
+folder is written under a temporary name and renamed into place whole, so it appears complete or not
+at all; a killed run's temporaries are swept by the next one. Outputs already complete are skipped
+(--overwrite redoes them).
+
+Models: every file that decides what they compute (weights, config.json, pipeline.json) is checked
+against its folder's checksums.json; a folder without one (made by hand) loads only with
+--trust-unverified, which is said on stderr.
 
 Light directions are in camera space: azimuth 0 = from the camera, +90 = from the picture's right,
 -90 = from its left, 180 = from behind the subject; elevation 0 = level with the camera, +90 = from
@@ -33,9 +39,15 @@ from __future__ import annotations
 
 import argparse
 import glob
+import math
 import os
+import re
+import shutil
+import socket
 import sys
 import tempfile
+import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
 DECOMPOSE_MAPS = ("albedo", "normal", "roughness", "metallic")
@@ -153,6 +165,12 @@ def _model_options(p: argparse.ArgumentParser, stage: str) -> None:
         metavar="GIB",
         help="refuse photos whose processing would need more (default: 80%% of RAM, or of GPU memory)",
     )
+    g.add_argument(
+        "--trust-unverified",
+        action="store_true",
+        help="load a models folder that has no checksums.json (made by hand): its files are used unverified, "
+        "which is said on stderr. Without it such a folder is refused",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -257,20 +275,109 @@ def output_names(photos: list[Path]) -> dict[Path, str]:
 
 
 def check_writable(out: Path) -> None:
-    """Fail now, not after minutes of work, when OUT cannot hold files."""
+    """Fail now, not after minutes of work, when OUT cannot hold files. Nothing is created: OUT is made by
+    the first output written, so a run refused later (a bad photo, a model) leaves no empty folder."""
+    probe = out
+    while not probe.exists():
+        if probe.parent == probe:
+            break
+        probe = probe.parent
     try:
-        out.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=out, prefix=".pilight-write-test.")
+        if not probe.is_dir():
+            raise NotADirectoryError(20, "Not a directory", str(probe))
+        fd, tmp = tempfile.mkstemp(dir=probe, prefix=".pilight-write-test.")
         os.close(fd)
         os.unlink(tmp)
     except OSError as exc:
         raise CliError(f"{out}: cannot write outputs there ({exc.strerror or exc})") from None
 
 
+# Temporaries of this process: .<final name>.tmp-<host>-<pid>-<random> (and .old- for a folder being
+# replaced), beside their final name. A killed run cannot remove its own; the next run on this host
+# removes those of processes that no longer exist (``sweep_stale``), never a live process's.
+_HOST = re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname())[:32] or "host"
+_TEMP = re.compile(r"^\..+\.(?:tmp|old)-(?P<host>[A-Za-z0-9_]+)-(?P<pid>\d+)-[^/]*$")
+
+
+def _tag(kind: str) -> str:
+    return f"{kind}-{_HOST}-{os.getpid()}-"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def sweep_stale(folder: Path) -> list[Path]:
+    """Remove the temporaries (``_TEMP``) in ``folder`` left by processes of this host that are gone; the
+    paths removed."""
+    removed = []
+    if not folder.is_dir():
+        return removed
+    for p in sorted(folder.iterdir()):
+        m = _TEMP.match(p.name)
+        if m and m["host"] == _HOST and int(m["pid"]) != os.getpid() and not _alive(int(m["pid"])):
+            shutil.rmtree(p, ignore_errors=True) if p.is_dir() and not p.is_symlink() else p.unlink(missing_ok=True)
+            removed.append(p)
+    return removed
+
+
+def _swap_into_place(tmp: Path, final: Path) -> None:
+    """Rename the folder ``tmp`` to ``final``; a ``final`` already there is first renamed aside (onto an empty
+    temporary folder) and removed after, so at no moment does a partial folder carry the final name."""
+    from pilight import atomic
+
+    os.chmod(tmp, atomic.dir_mode())  # mkdtemp makes 0700 whatever the umask
+    old = None
+    if final.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{final.name}.{_tag('old')}", dir=final.parent))
+        os.replace(final, old)  # a folder renamed onto an empty folder replaces it
+    os.replace(tmp, final)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def write_folder(final: Path, files: dict[str, object]) -> None:
+    """``files`` ({file name: array}, written as ``write_group`` does) as the folder ``final``: written into
+    a temporary sibling, then renamed into place whole. On any error the temporary is removed and
+    ``final`` keeps what it held; an OSError names ``final``."""
+    from pilight import atomic
+
+    tmp = None
+    try:
+        final.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.{_tag('tmp')}", dir=final.parent))
+        write_group({tmp / name: arr for name, arr in files.items()})
+        _swap_into_place(tmp, final)
+    except BaseException as exc:
+        atomic.abandon_folder(exc, tmp, final)
+
+
+def write_into(folder: Path, files: dict[str, object]) -> None:
+    """``files`` into an existing ``folder`` that holds other outputs (a photo's folder with its lights'):
+    all written into a temporary folder inside it first, then renamed into place one by one (the renames
+    take microseconds; a kill between them leaves a set ``_complete`` does not accept, redone next run)."""
+    from pilight import atomic
+
+    tmp = None
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=f".decompose.{_tag('tmp')}", dir=folder))
+        write_group({tmp / name: arr for name, arr in files.items()})
+        for name in files:
+            os.replace(tmp / name, folder / name)
+        tmp.rmdir()
+    except BaseException as exc:
+        atomic.abandon_folder(exc, tmp, folder)
+
+
 def write_group(files: dict[Path, object]) -> None:
     """Write several files (EXR arrays or PNG uint8 arrays by suffix), each to a temporary, then
-    renamed; if any fails, the ones already renamed are removed, so a photo's outputs appear
-    together or not at all."""
+    renamed; if any fails, the ones already renamed are removed."""
     import numpy as np
 
     from pilight import atomic
@@ -329,19 +436,58 @@ def _my_share(photos: list[Path], state) -> list[Path]:
 
 
 # --- commands --------------------------------------------------------------------------------------
+_SAID = ("UnverifiedModelWarning", "PhotoWarning", "LightWarning")  # our warnings, said as one line each
+
+
+@contextmanager
+def _say_warnings():
+    """Inside the block, pilight's own warnings (an unverified model, a photo or light read with a change)
+    go to stderr as "pilight: warning: ..." lines; any other warning is shown as Python shows it."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            yield
+        finally:
+            for w in caught:
+                if type(w.message).__name__ in _SAID:
+                    print(f"pilight: warning: {w.message}", file=sys.stderr)
+                else:
+                    warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+
+
+def check_model_options(args) -> None:
+    """The model and sampling options, checked by the models that check params.yaml's keys (exit 2),
+    before anything is loaded or created: `--cfg nan` was a sampler traceback after the models loaded."""
+    from pydantic import ValidationError
+
+    from pilight.params import SamplingParams
+    from pilight.pipeline import MAX_PROCESSING_RESOLUTION
+
+    if args.resolution is not None and not 0 <= args.resolution <= MAX_PROCESSING_RESOLUTION:
+        raise CliError(
+            f"--resolution must lie in [0, {MAX_PROCESSING_RESOLUTION}] (0 = the photo's own size), got {args.resolution}",
+            2,
+        )
+    for flag, key, v in (
+        ("--steps", "steps", args.steps),
+        ("--cfg", "cfg_scale", args.cfg),
+        ("--ensemble", "ensemble", args.ensemble),
+    ):
+        if v is None:
+            continue
+        try:
+            SamplingParams.model_validate({key: v})
+        except ValidationError as exc:
+            raise CliError(f"{flag} {v}: {exc.errors()[0]['msg']}", 2) from None
+    if args.max_memory is not None and not (math.isfinite(args.max_memory) and args.max_memory > 0):
+        raise CliError(f"--max-memory must be a finite number of GiB > 0, got {args.max_memory}", 2)
+
+
 def _pipeline(args, stage: str, state=None):
     from pilight.params import ParamsError
     from pilight.pipeline import PIPELINE_FILE, PILightPipeline, PipelineError
 
-    if args.resolution is not None and args.resolution < 0:
-        raise CliError(f"--resolution must be >= 0 (0 = the photo's own size), got {args.resolution}", 2)
-    for flag, v in (("--steps", args.steps), ("--ensemble", args.ensemble)):
-        if v is not None and v < 1:
-            raise CliError(f"{flag} must be >= 1, got {v}", 2)
-    if args.cfg is not None and args.cfg < 0:
-        raise CliError(f"--cfg must be >= 0, got {args.cfg}", 2)
-    if args.max_memory is not None and args.max_memory <= 0:
-        raise CliError(f"--max-memory must be > 0 GiB, got {args.max_memory}", 2)
+    check_model_options(args)
     device = args.device
     if state is not None and device == "auto":  # one device per process: cuda:<local rank>, or the CPU
         device = str(state.device)
@@ -352,7 +498,10 @@ def _pipeline(args, stage: str, state=None):
         if note:
             print(f"pilight: {note}", file=sys.stderr)
     try:
-        pipe = PILightPipeline.from_pretrained(args.models, device=device, params=args.params)
+        with _say_warnings():
+            pipe = PILightPipeline.from_pretrained(
+                args.models, device=device, params=args.params, trust_unverified=args.trust_unverified
+            )
     except ParamsError as exc:
         raise CliError(str(exc), 2) from None
     except PipelineError as exc:
@@ -431,9 +580,17 @@ def _done_together(state) -> None:
         state.wait_for_everyone()
 
 
+def _sweep(out: Path, folders) -> None:
+    """A killed run's temporaries in OUT and in the photo folders this process writes (``sweep_stale``)."""
+    gone = sweep_stale(out) + [p for f in folders for p in sweep_stale(f)]
+    if gone:
+        print(f"pilight: removed {len(gone)} temporary output(s) left by a killed run", file=sys.stderr)
+
+
 def cmd_decompose(args) -> int:
     from pilight.photo import PhotoError, linear_to_srgb8, normal_preview, read_photo
 
+    check_model_options(args)  # exit 2 before anything is read, loaded or created
     photos = expand_inputs(args.photos)
     names = output_names(photos)
     check_writable(args.out)
@@ -441,6 +598,7 @@ def cmd_decompose(args) -> int:
     pipe = _pipeline(args, "intrinsics", state)
     _check_photos(pipe, photos, 0, args.max_memory)
     mine = _my_share(photos, state)
+    _sweep(args.out, [args.out / names[p] for p in mine])
     todo = [p for p in mine if args.overwrite or not _complete(decompose_files(args.out / names[p]))]
     if len(todo) < len(mine):
         print(
@@ -450,10 +608,11 @@ def cmd_decompose(args) -> int:
         )
     failed = 0
     with _progress(len(todo), "decompose", state) as bar:
-        for p in todo:
+        for done, p in enumerate(todo):
             try:
-                photo = read_photo(p)
-                d = pipe.decompose(photo, name=str(p))
+                with _say_warnings():
+                    photo = read_photo(p)
+                    d = pipe.decompose(photo, name=str(p))
             except PhotoError as exc:
                 print(f"pilight: {exc}", file=sys.stderr)
                 failed += 1
@@ -462,30 +621,27 @@ def cmd_decompose(args) -> int:
             folder = args.out / names[p]
             a = d.mask
             files = {
-                folder / "albedo.exr": d.albedo,
-                folder / "albedo.png": linear_to_srgb8(d.albedo, a),
-                folder / "normal.exr": d.normal,
-                folder / "normal.png": normal_preview(d.normal, a),
-                folder / "roughness.exr": d.roughness,
-                folder / "roughness.png": linear_to_srgb8(d.roughness, a),
-                folder / "metallic.exr": d.metallic,
-                folder / "metallic.png": linear_to_srgb8(d.metallic, a),
+                "albedo.exr": d.albedo,
+                "albedo.png": linear_to_srgb8(d.albedo, a),
+                "normal.exr": d.normal,
+                "normal.png": normal_preview(d.normal, a),
+                "roughness.exr": d.roughness,
+                "roughness.png": linear_to_srgb8(d.roughness, a),
+                "metallic.exr": d.metallic,
+                "metallic.png": linear_to_srgb8(d.metallic, a),
             }
-            _write_or_fail(files, folder)
+            try:
+                write_into(folder, files) if folder.is_dir() else write_folder(folder, files)
+            except (OSError, ValueError) as exc:  # ExrError is a ValueError (a full disk inside OpenEXR)
+                raise CliError(
+                    f"{folder}: cannot write the decomposition ({getattr(exc, 'strerror', None) or exc}); nothing of "
+                    f"it was kept. {done - failed} photo(s) before it are complete; rerun to continue"
+                ) from None
             bar.set_postfix_str(f"{p.name} at {d.processing_size[1]}x{d.processing_size[0]}")
             bar.update(1)
     print(f"pilight: decomposed {len(todo) - failed} photo(s) into {args.out}", file=sys.stderr)
     _done_together(state)
     return 1 if failed else 0
-
-
-def _write_or_fail(files, folder: Path) -> None:
-    try:
-        write_group(files)
-    except OSError as exc:
-        raise CliError(
-            f"{folder}: cannot write outputs ({exc.strerror or exc}); nothing of this photo was kept"
-        ) from None
 
 
 def contact_sheet(photo_rgb, ball, relit):
@@ -518,9 +674,10 @@ def _lights(args, size: int):
     from pilight.lights import LightError, parse_lights
 
     try:
-        return parse_lights(
-            args.light, args.azimuth, args.elevation, args.ball, args.hdri, args.rotate, args.intensity, size
-        )
+        with _say_warnings():
+            return parse_lights(
+                args.light, args.azimuth, args.elevation, args.ball, args.hdri, args.rotate, args.intensity, size
+            )
     except LightError as exc:
         raise CliError(str(exc), 2) from None
 
@@ -529,6 +686,7 @@ def cmd_relight(args) -> int:
     from pilight.lights import BALL_SIZE, ball_preview
     from pilight.photo import PhotoError, linear_to_srgb8, read_photo
 
+    check_model_options(args)  # exit 2 before anything is read, loaded or created
     lights = _lights(args, BALL_SIZE)  # bad light options fail before any model is loaded
     photos = expand_inputs(args.photos)
     names = output_names(photos)
@@ -537,9 +695,11 @@ def cmd_relight(args) -> int:
     pipe = _pipeline(args, "relight", state)
     _check_photos(pipe, photos, len(lights), args.max_memory)
     branches = pipe.relight_task.branches
+    mine = _my_share(photos, state)
+    _sweep(args.out, [args.out / names[p] for p in mine])
     pending = {
         p: [l for l in lights if args.overwrite or not _complete(relight_files(args.out / names[p] / l.name, branches))]
-        for p in _my_share(photos, state)
+        for p in mine
     }
     todo = [p for p in pending if pending[p]]
     skipped = sum(len(lights) - len(v) for v in pending.values())
@@ -551,28 +711,38 @@ def cmd_relight(args) -> int:
         )
     failed = 0
     with _progress(len(todo), f"relight x{len(lights)} light(s)", state) as bar:
-        for p in todo:
+        for done, p in enumerate(todo):
             try:
-                photo = read_photo(p)
-                out = pipe.relight(photo, pending[p], name=str(p), absolute=args.absolute)
+                with _say_warnings():
+                    photo = read_photo(p)
+                    out = pipe.relight(photo, pending[p], name=str(p), absolute=args.absolute)
             except PhotoError as exc:
                 print(f"pilight: {exc}", file=sys.stderr)
                 failed += 1
                 bar.update(1)
                 continue
+            asked = {l.name for l in pending[p]}
+            complete = [l.name for l in lights if l.name not in asked]  # this photo's lights already on disk
             for i, light in enumerate(out.lights):
                 folder = args.out / names[p] / light.name
                 files = {}
                 for b in branches:
                     arr = getattr(out, b)[i]
-                    files[folder / f"{b}.exr"] = arr
-                    files[folder / f"{b}.png"] = linear_to_srgb8(arr)
-                files[folder / "ball.exr"] = out.balls[i]
-                files[folder / "ball.png"] = ball_preview(light.ball)
-                files[folder / "contact.png"] = contact_sheet(
-                    photo.rgb, light.ball.permute(1, 2, 0).numpy(), out.relit[i]
-                )
-                _write_or_fail(files, folder)
+                    files[f"{b}.exr"] = arr
+                    files[f"{b}.png"] = linear_to_srgb8(arr)
+                files["ball.exr"] = out.balls[i]
+                files["ball.png"] = ball_preview(light.ball)
+                files["contact.png"] = contact_sheet(photo.rgb, light.ball.permute(1, 2, 0).numpy(), out.relit[i])
+                try:
+                    write_folder(folder, files)
+                except (OSError, ValueError) as exc:  # ExrError is a ValueError (a full disk inside OpenEXR)
+                    kept = f"; its light(s) {', '.join(complete)} are complete" if complete else ""
+                    raise CliError(
+                        f"{folder}: cannot write this light's outputs ({getattr(exc, 'strerror', None) or exc}); "
+                        f"nothing of this light was kept{kept}. {done - failed} photo(s) before it are complete; "
+                        "rerun to continue"
+                    ) from None
+                complete.append(light.name)
             bar.set_postfix_str(p.name)
             bar.update(1)
     print(f"pilight: relit {len(todo) - failed} photo(s) under {len(lights)} light(s) into {args.out}", file=sys.stderr)
@@ -583,18 +753,23 @@ def cmd_relight(args) -> int:
 def cmd_ball(args) -> int:
     from pilight.lights import ball_preview
 
-    if args.size < 8:
-        raise CliError(f"--size must be >= 8 pixels, got {args.size}", 2)
+    if not 8 <= args.size <= 8192:
+        raise CliError(f"--size must lie in [8, 8192] pixels, got {args.size}", 2)
     lights = _lights(args, args.size)
     check_writable(args.out)
-    for light in lights:
-        _write_or_fail(
-            {
-                args.out / f"{light.name}.exr": light.ball.permute(1, 2, 0).numpy(),
-                args.out / f"{light.name}.png": ball_preview(light.ball),
-            },
-            args.out,
-        )
+    for done, light in enumerate(lights):
+        try:
+            write_group(
+                {
+                    args.out / f"{light.name}.exr": light.ball.permute(1, 2, 0).numpy(),
+                    args.out / f"{light.name}.png": ball_preview(light.ball),
+                }
+            )
+        except (OSError, ValueError) as exc:
+            raise CliError(
+                f"{args.out / light.name}: cannot write the ball ({getattr(exc, 'strerror', None) or exc}); nothing "
+                f"of it was kept, {done} ball(s) before it are complete"
+            ) from None
         print(f"{args.out / light.name}.png  {light.description}")
     return 0
 

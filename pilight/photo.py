@@ -8,6 +8,9 @@ The one place a user's picture becomes the pipeline's linear HDR image (and back
 * Grayscale is replicated to RGB; an alpha channel becomes the mask (1 where alpha >= 0.5, the
   project's mask is 0 or 1) and the colour is kept as stored (not premultiplied).
 * ``probe`` reads the header only, so a huge image is refused before its pixels are allocated.
+* Refused, naming the file (issue 36): an animation or a multi-page file (which frame?), an alpha
+  channel below 0.5 everywhere (nothing marked to process). Said, as a ``PhotoWarning``: negative
+  values of a linear file, set to 0 (light is never negative).
 
 Pillow decodes 16-bit RGB PNG and TIFF to 8 bits. A non-interlaced 16-bit PNG is therefore decoded
 here (zlib and PNG's row filters in numpy), and so is an uncompressed 16-bit TIFF; other 16-bit
@@ -33,6 +36,18 @@ EXIF_ORIENTATION = 0x0112
 
 class PhotoError(ValueError):
     """A photo (or light file) cannot be read or used; the message names the file."""
+
+
+class PhotoWarning(UserWarning):
+    """A photo was read with a change the user should know of (negative linear values set to 0)."""
+
+
+def _check_frames(im, path) -> None:
+    frames = getattr(im, "n_frames", 1)
+    if frames > 1:
+        raise PhotoError(
+            f"{path}: {frames} frames (an animation or a multi-page file); save the frame to process as a still image"
+        )
 
 
 @dataclass
@@ -100,6 +115,7 @@ def probe(path: str | Path) -> tuple[int, int]:
                 return _hdr_header(f, path)[:2]
 
         with _open_pil(path) as im:
+            _check_frames(im, path)
             w, h = im.size
             return (w, h) if _orientation(im) in (5, 6, 7, 8) else (h, w)
     except PhotoError:
@@ -162,6 +178,7 @@ def read_photo(path: str | Path) -> Photo:
 
 def _read_pil(path: Path) -> Photo:
     with _open_pil(path) as im:
+        _check_frames(im, path)
         orientation = _orientation(im)
         a = None
         if im.format == "PNG":
@@ -208,8 +225,19 @@ def _from_channels(a: np.ndarray, *, linear: bool, name: str) -> Photo:
     colour, alpha = (a[..., :1], a[..., 1]) if c == 2 else (a[..., :3], a[..., 3]) if c == 4 else (a, None)
     if colour.shape[2] == 1:
         colour = np.repeat(colour, 3, axis=2)
+    if linear and (negative := int((colour < 0).sum())):
+        warnings.warn(
+            f"{name}: {negative} negative value(s), down to {float(colour.min()):.4g}, set to 0 (light is never negative)",
+            PhotoWarning,
+            stacklevel=3,
+        )
     rgb = np.clip(colour, 0.0, None) if linear else srgb_to_linear(colour)
     mask = None if alpha is None else (alpha >= 0.5).astype(np.float32)
+    if mask is not None and not mask.any():
+        raise PhotoError(
+            f"{name}: its alpha channel is below 0.5 everywhere, so no pixel is marked to process; "
+            "remove the alpha channel to use the whole picture"
+        )
     return Photo(np.ascontiguousarray(rgb, dtype=np.float32), mask, name)
 
 
@@ -231,6 +259,7 @@ def as_photo(image, name: str = "<array>") -> Photo:
         from PIL import Image
 
         if isinstance(image, Image.Image):
+            _check_frames(image, name)
             a = _pil_array(image, Path(name))
             if a.dtype == np.float32:
                 return _from_channels(a, linear=True, name=name)
