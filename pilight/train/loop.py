@@ -41,6 +41,12 @@ be met (FSDP in a single unlaunched process, DeepSpeed) is an error, never a sil
 
 Optional Task hook: if the task has ``to(device)``, it is called first so frozen parts (VAE, text
 encoder) follow the trainable module onto the accelerator's device.
+
+Divergence (issue 36): the first logged loss is the run's start (kept in every checkpoint, so a resumed
+run keeps it); a later logged loss above ``DIVERGENCE_FACTOR`` times it stops the run with a
+:class:`DivergedError` before anything is checkpointed or saved. ``lr: 1.0`` once took a loss from
+0.57 to 15,671 and saved that model with exit 0. Weights holding NaN/Inf stop the run before a preview
+samples them (the sampler's own refusal blamed "the condition upstream").
 """
 
 from __future__ import annotations
@@ -61,6 +67,15 @@ from tqdm.auto import tqdm
 from pilight.params import TrainParams
 from pilight.train import checkpoint as ckpt
 from pilight.train import sharding
+
+# A logged loss (the mean over a log_every window) above this multiple of the run's first logged loss is
+# divergence. Healthy runs of both stages end below their start; within a run the windows' means vary by a
+# few times (which timesteps were drawn), never by two orders of magnitude.
+DIVERGENCE_FACTOR = 100.0
+
+
+class DivergedError(FloatingPointError):
+    """The loss rose above DIVERGENCE_FACTOR x its start: the run stops, nothing is checkpointed or saved."""
 
 
 class Task(Protocol):
@@ -275,7 +290,7 @@ def train(
     # One stream per process so the shards draw different noise; the loop never uses the global RNG.
     generator = torch.Generator().manual_seed(seed + acc.process_index)
 
-    step, epoch, consumed, resumed_from, prior_seconds, final_loss = 0, 0, 0, None, 0.0, None
+    step, epoch, consumed, resumed_from, prior_seconds, final_loss, start_loss = 0, 0, 0, None, 0.0, None, None
     if acc.is_main_process:
         ckpt.remove_stale_tmp(checkpoint_dir)
         if identity is not None:
@@ -297,6 +312,7 @@ def train(
         _restore_rng(acc, generator, rng)
         step, epoch, consumed = state["step"], state["epoch"], state["batches_in_epoch"]
         resumed_from, prior_seconds, final_loss = step, state.get("seconds", 0.0), state.get("final_loss")
+        start_loss = state.get("start_loss")
         acc.print(f"resuming from {latest} (step {step}, epoch {epoch}, batch {consumed})")
 
     live = _open_live(Path(live_dir), resumed_from) if live_dir is not None and acc.is_main_process else None
@@ -348,6 +364,15 @@ def train(
                         f"non-finite loss {final_loss} at step {step}; not checkpointed, "
                         f"{checkpoint_dir} keeps its last good checkpoint"
                     )
+                if start_loss is None:
+                    start_loss = final_loss
+                elif start_loss > 0 and final_loss > DIVERGENCE_FACTOR * start_loss:
+                    raise DivergedError(
+                        f"training diverged: the loss at step {step}, {final_loss:.4g}, is over {DIVERGENCE_FACTOR:g}x "
+                        f"its start ({start_loss:.4g}, the first logged loss); stopped with nothing checkpointed or "
+                        f"saved, {checkpoint_dir} keeps its last good checkpoint. Lower train.lr (now {cfg.lr:g}) or "
+                        "raise train.warmup_steps"
+                    )
                 rate = win_n * task.samples_per_batch * acc.num_processes / max(now - win_t, 1e-9)
                 bar.set_postfix(loss=f"{final_loss:.4f}")
                 if live is not None:
@@ -361,6 +386,9 @@ def train(
                 win_t, win_n, win_loss, win_scalars = now, 0, torch.zeros((), device=acc.device), {}
 
             if live_dir is not None and step % cfg.image_every == 0:
+                # The preview samples the weights: NaN there is the training's failure, said as such, not a
+                # sampler traceback. Every process checks (sharded: a collective), so none waits alone.
+                _check_finite_before_saving(acc, win_loss, win_n, params, ema, step, sharded)
                 if sharded:  # a collective: the main process receives the whole weights for its previews
                     sharding.whole_weights(model, module, everywhere=False)
                 if live is not None:
@@ -400,6 +428,7 @@ def train(
                             "batches_in_epoch": consumed,
                             "seconds": seconds,
                             "final_loss": final_loss,
+                            "start_loss": start_loss,
                         },
                     )
                 acc.wait_for_everyone()

@@ -107,3 +107,76 @@ def test_damaged_newest_checkpoint_is_warned_about_and_the_previous_one_used(tmp
     for a, b in zip(ref.net.state_dict().values(), resumed.net.state_dict().values()):
         assert torch.equal(a, b)
     assert _all_finite(tmp_path / "c")
+
+
+# --- issue 36: divergence and NaN weights stop the run with the training's own message ---------------
+def test_a_diverging_stage_stops_and_saves_no_model(tmp_path, capsys):
+    """lr 1.0 (the allowed maximum) on the stage-1 script: the loss leaves its start by >100x within a few
+    steps. Before: exit 0 and the diverged model saved to models/."""
+    import importlib.util
+
+    from tests.stage_scripts import REPO, params_file, tiny_shards, training_outputs
+
+    shards = tiny_shards(tmp_path)
+    train = {"steps": 30, "batch_size": 2, "checkpoint_every": 100, "image_every": 100, "log_every": 1}
+    train |= {"warmup_steps": 0, "lr": 1.0, "max_grad_norm": None}
+    unet = {"block_out_channels": [8, 8], "layers_per_block": 1, "attention_head_dim": 4, "cross_attention_dim": 8}
+    params = params_file(
+        tmp_path, {"intrinsics": {"unet": unet, "codec": {"kind": "pixel", "factor": 4}, "train": train}}
+    )
+    spec = importlib.util.spec_from_file_location("stage_train_intrinsics", REPO / "stages" / "train_intrinsics.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    rc = mod.main(["--params", str(params), "--shards", str(shards), *map(str, training_outputs(tmp_path))])
+    err = capsys.readouterr().err
+    assert rc == 1 and "train_intrinsics: training diverged: the loss at step" in err, err
+    assert "over 100x its start" in err and "Lower train.lr (now 1)" in err
+    assert not (tmp_path / "model").exists()
+    assert ckpt.list_checkpoints(tmp_path / "ckpt") == []
+
+
+class Diverging(Toy):
+    """Its loss is 1000x larger after ``after`` calls: what a diverging run logs."""
+
+    def __init__(self, after: int):
+        super().__init__()
+        self.calls, self.after = 0, after
+
+    def loss(self, batch, generator, model):
+        self.calls += 1
+        base = (model(batch) - batch.flip(-1)).square().mean()
+        return base * (1.0 if self.calls <= self.after else 1000.0), {}
+
+
+def test_the_start_is_kept_across_a_resume(tmp_path: Path):
+    # The run is checkpointed at step 4 (log_every 2: start = the loss of steps 1-2), then resumed: the
+    # resumed run keeps that start, and stops at its first log above 100x it.
+    cfg = _cfg(steps=4, log_every=2, checkpoint_every=4)
+    train(Diverging(after=10**9), cfg, tmp_path / "c", None, progress=False)
+    from safetensors import safe_open
+
+    with safe_open(str(ckpt.checkpoint_path(tmp_path / "c", 4) / ckpt.STATE_FILE), framework="pt") as fh:
+        import json
+
+        start = json.loads(fh.metadata()["progress"])["start_loss"]
+    assert start is not None and start > 0
+    with pytest.raises(FloatingPointError, match=rf"step 6, .* over 100x its start \({start:.4g}"):
+        train(Diverging(after=0), cfg.model_copy(update={"steps": 8}), tmp_path / "c", None, progress=False)
+    assert [ckpt.step_of(p) for p in ckpt.list_checkpoints(tmp_path / "c")] == [4]
+
+
+class Previewing(Toy):
+    """A preview that fails as the sampler did on NaN weights, blaming its input."""
+
+    def images(self, batch):
+        if not bool(torch.isfinite(self.net.weight).all()):
+            raise ValueError("the condition is broken upstream (image, codec or conditioning encoder)")
+        return {}
+
+
+def test_nan_weights_stop_training_before_a_preview_samples_them(tmp_path: Path):
+    # An unbounded weight_decay (now refused by params) multiplied the weights by 1 - lr x wd < -1 each step:
+    # NaN after a few steps, met first by the preview. The loop's own check now speaks first.
+    cfg = _cfg(steps=60, log_every=100, checkpoint_every=100, image_every=1).model_copy(update={"weight_decay": 1e6})
+    with pytest.raises(ckpt.NonFiniteError, match=r"(non-finite loss|weights hold NaN/Inf).* step \d+"):
+        train(Previewing(), cfg, tmp_path / "c", tmp_path / "live", progress=False)
