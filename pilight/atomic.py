@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Callable
@@ -114,6 +115,50 @@ def write_with(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
             raise path_error(exc, path, lambda name: name.startswith(prefix)) from exc
         raise
     return path
+
+
+# What a killed write leaves (issue 36), by writer: write_with's `.<name>.<8 random>.tmp` beside its file; a
+# folder written under `.<name>.tmp-<random>` (shards, predictions, the CLI's light folders) or moved aside as
+# `.<name>.old-<pid>` (shards); export's `.<name>.tmp` and `.<name>.old`; inside an output folder, the render's
+# scratch `.render_tmp_*` and the checkpoints' `.tmp-*`.
+_FILE_TEMP = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp$")
+_INNER_TEMP = re.compile(r"^\.(render_tmp_|tmp-)")
+
+
+def _beside(name: str) -> re.Pattern:
+    n = re.escape(name)
+    return re.compile(rf"^\.{n}\.(tmp-.+|old-.+|tmp|old|[A-Za-z0-9_]{{8}}\.tmp)$")
+
+
+def sweep_temporaries(*outputs: str | os.PathLike | None) -> list[Path]:
+    """Remove the temporaries that killed writes of ``outputs`` (files or folders; None is skipped) left:
+    beside each output, those of its own name; inside an output folder, write_with's (at any depth) and
+    the render's and checkpoints' scratch (its top level). A stage calls this at its start (its outputs
+    are its own while it runs); returns what was removed."""
+    removed: list[Path] = []
+
+    def drop(p: Path) -> None:
+        shutil.rmtree(p, ignore_errors=True) if p.is_dir() and not p.is_symlink() else p.unlink(missing_ok=True)
+        removed.append(p)
+
+    for out in outputs:
+        if out is None:
+            continue
+        out = Path(out)
+        if out.parent.is_dir():
+            beside = _beside(out.name)
+            for p in sorted(out.parent.iterdir()):
+                if beside.match(p.name):
+                    drop(p)
+        if out.is_dir() and not out.is_symlink():
+            for p in sorted(out.iterdir()):
+                if _INNER_TEMP.match(p.name):
+                    drop(p)
+            for root, _dirs, files in os.walk(out):
+                for f in sorted(files):
+                    if _FILE_TEMP.match(f):
+                        drop(Path(root) / f)
+    return removed
 
 
 def write_text(path: str | os.PathLike, text: str) -> Path:

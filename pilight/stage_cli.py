@@ -10,16 +10,22 @@ sections it reads, and the exit codes DVC and users see:
 A stage script is then its docstring, its options and a ``body(args, *sections)``:
 
     def main(argv=None) -> int:
-        return run_stage("shard", __doc__, argv, ["base", "shard", "render"], options, body)
+        return run_stage("shard", __doc__, argv, ["base", "shard", "render"], options, body, outputs=lambda a: [a.out])
+
+``outputs`` names the stage's outputs (its dvc.yaml outs, metrics and plots): before the body runs, the
+temporaries that a killed earlier run of the stage left beside or inside them are removed, and said
+(pilight.atomic.sweep_temporaries; issue 36: killed stages left `data/.<out>.tmp-*` that nothing swept).
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
+from pathlib import Path
 
+from pilight import atomic
 from pilight.data.schema import DataError
 from pilight.params import ParamsError, load_section
 
@@ -51,8 +57,10 @@ def run_stage(
     sections: Sequence[str],
     options: Callable[[argparse.ArgumentParser], None],
     body: Callable[..., int],
+    outputs: Callable[[argparse.Namespace], Iterable[Path | None]] | None = None,
 ) -> int:
-    """Parse ``argv``, load ``sections`` from --params, run ``body(args, *sections)``; the exit code."""
+    """Parse ``argv``, load ``sections`` from --params, sweep the stale temporaries of ``outputs(args)``, run
+    ``body(args, *sections)``; the exit code."""
     ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--params", default="params.yaml")
     options(ap)
@@ -63,6 +71,10 @@ def run_stage(
         print(f"{name}: {exc}", file=sys.stderr)
         return 2
     try:
+        swept = atomic.sweep_temporaries(*outputs(args)) if outputs is not None else []
+        if swept:
+            shown = ", ".join(map(str, swept[:3])) + (f" and {len(swept) - 3} more" if len(swept) > 3 else "")
+            print(f"{name}: removed {len(swept)} temporary output(s) left by a killed run: {shown}", file=sys.stderr)
         return body(args, *params)
     except (StageFailure, DataError) as exc:
         print(f"{name}: {exc}", file=sys.stderr)

@@ -77,7 +77,15 @@ def body(args, base, ev) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_stage("evaluate", __doc__, argv, ["base", "evaluate"], options, body)
+    return run_stage(
+        "evaluate",
+        __doc__,
+        argv,
+        ["base", "evaluate"],
+        options,
+        body,
+        outputs=lambda a: [a.metrics, a.headline or headline_path(a.metrics), a.reports],
+    )
 
 
 if __name__ == "__main__":

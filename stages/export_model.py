@@ -71,7 +71,9 @@ def body(args, base, render, intrinsics, relight) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_stage("export", __doc__, argv, ["base", "render", "intrinsics", "relight"], options, body)
+    return run_stage(
+        "export", __doc__, argv, ["base", "render", "intrinsics", "relight"], options, body, outputs=lambda a: [a.out]
+    )
 
 
 if __name__ == "__main__":

@@ -45,7 +45,15 @@ def body(args, base, p, ip) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_stage("infer_intrinsics", __doc__, argv, ["base", "intrinsics", "infer_intrinsics"], options, body)
+    return run_stage(
+        "infer_intrinsics",
+        __doc__,
+        argv,
+        ["base", "intrinsics", "infer_intrinsics"],
+        options,
+        body,
+        outputs=lambda a: [a.out, a.metrics],
+    )
 
 
 if __name__ == "__main__":

@@ -55,7 +55,15 @@ def body(args, base, p, ip) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_stage("relight", __doc__, argv, ["base", "relight", "relight_infer"], options, body)
+    return run_stage(
+        "relight",
+        __doc__,
+        argv,
+        ["base", "relight", "relight_infer"],
+        options,
+        body,
+        outputs=lambda a: [a.out, a.metrics],
+    )
 
 
 if __name__ == "__main__":

@@ -43,7 +43,7 @@ def body(args, base, render) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_stage("render", __doc__, argv, ["base", "render"], options, body)
+    return run_stage("render", __doc__, argv, ["base", "render"], options, body, outputs=lambda a: [a.out])
 
 
 if __name__ == "__main__":

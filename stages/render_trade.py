@@ -46,7 +46,15 @@ def body(args, base, p, ev) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_stage("render_trade", __doc__, argv, ["base", "render", "evaluate"], options, body)
+    return run_stage(
+        "render_trade",
+        __doc__,
+        argv,
+        ["base", "render", "evaluate"],
+        options,
+        body,
+        outputs=lambda a: [a.metrics, a.plots, a.reports],
+    )
 
 
 if __name__ == "__main__":

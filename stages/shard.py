@@ -35,7 +35,7 @@ def body(args, base, shard, render) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_stage("shard", __doc__, argv, ["base", "shard", "render"], options, body)
+    return run_stage("shard", __doc__, argv, ["base", "shard", "render"], options, body, outputs=lambda a: [a.out])
 
 
 if __name__ == "__main__":

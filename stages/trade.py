@@ -54,7 +54,7 @@ def body(args, base, p1, ip1, p2, ip2, ev) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     sections = ["base", "intrinsics", "infer_intrinsics", "relight", "relight_infer", "evaluate"]
-    return run_stage("trade", __doc__, argv, sections, options, body)
+    return run_stage("trade", __doc__, argv, sections, options, body, outputs=lambda a: [a.metrics, a.plots, a.reports])
 
 
 if __name__ == "__main__":

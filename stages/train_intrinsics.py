@@ -44,7 +44,15 @@ def body(args, base, p) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_stage("train_intrinsics", __doc__, argv, ["base", "intrinsics"], options, body)
+    return run_stage(
+        "train_intrinsics",
+        __doc__,
+        argv,
+        ["base", "intrinsics"],
+        options,
+        body,
+        outputs=lambda a: [a.out, a.checkpoints, a.live],
+    )
 
 
 if __name__ == "__main__":

@@ -53,7 +53,15 @@ def body(args, base, p) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_stage("train_relight", __doc__, argv, ["base", "relight"], options, body)
+    return run_stage(
+        "train_relight",
+        __doc__,
+        argv,
+        ["base", "relight"],
+        options,
+        body,
+        outputs=lambda a: [a.out, a.checkpoints, a.live],
+    )
 
 
 if __name__ == "__main__":

@@ -103,7 +103,8 @@ def test_truncated_model_fails_inference_with_a_message(setup, tmp_path, capsys)
         ]
     )
     err = capsys.readouterr().err
-    assert rc == 1 and f"{tmp_path / 'model' / 'model.safetensors'}: unreadable safetensors file" in err, err
+    # No manifest vouches for it (issue 36): refused before its bytes are read
+    assert rc == 1 and f"{tmp_path / 'model' / 'checksums.json'}: missing" in err, err
     assert not (tmp_path / "pred").exists()
 
 
