@@ -30,13 +30,20 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torchmetrics.functional.image import structural_similarity_index_measure
 
 from pilight.data.predictions import read_predictions
 from pilight.data.schema import DataError
 from pilight.data.shards import intrinsics_dataset, make_loader
 from pilight.eval.light_invariance import light_invariance
-from pilight.eval.metrics import PSNR_CAP, angular_errors, masked_mae, masked_psnr, normal_metrics
+from pilight.eval.metrics import (
+    PSNR_CAP,
+    angular_errors,
+    masked_mae,
+    masked_psnr,
+    masked_ssim,
+    mean_over_masked,
+    normal_metrics,
+)
 from pilight.eval.scale_invariant import LMSE_STRIDE, LMSE_WINDOW, lmse, scaled_to
 
 SCALARS = ("roughness", "metallic")
@@ -59,8 +66,8 @@ def table1(pred: dict[str, torch.Tensor], gt: dict[str, torch.Tensor], mask: tor
         p, g = display01(d, pred[d], mask), display01(d, gt[d], mask)
         out[d] = {
             "psnr": masked_psnr(p, g, mask),
-            "ssim": float(structural_similarity_index_measure(p, g, data_range=1.0)),
-            "lpips": float(lpips(p, g).mean()) if lpips is not None else None,
+            "ssim": masked_ssim(p, g, mask),  # None, not 1.0, when every mask is empty (#36)
+            "lpips": mean_over_masked(lpips(p, g).flatten(), mask) if lpips is not None else None,
         }
     if out:
         avg = lambda k: None if any(v[k] is None for v in out.values()) else sum(v[k] for v in out.values()) / len(out)

@@ -6,6 +6,12 @@
 - roughness, metallic: mean absolute error over the mask.
 An empty mask gives NaN-free "n/a" (None), never a made-up number. PSNR is capped at PSNR_CAP, so
 identical maps (the ground truth, a copy) give a finite, valid-JSON clamp value.
+
+Undefined is not perfect (issue 36): a figure computed per image over maps zeroed off the mask (SSIM,
+LPIPS) would score an image with an EMPTY mask as a perfect match (SSIM 1.000 over zero pixels). Such
+images are left out of the mean (``mean_over_masked``, ``masked_ssim``), and a figure with no image
+left is None, reported as missing ("n/a", null), as is a mean angle over no pixel
+(``masked_mean_angular_error``).
 """
 
 from __future__ import annotations
@@ -65,6 +71,36 @@ def normal_metrics(errors_deg: torch.Tensor) -> dict[str, float | None]:
 def masked_mae(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> float | None:
     p, g = _masked(pred, mask), _masked(gt, mask)
     return float((p - g).abs().mean()) if p.numel() else None
+
+
+def masked_mean_angular_error(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> float | None:
+    """Mean angle (degrees) between predicted and true normals over the masked pixels; None without any."""
+    errors = angular_errors(pred, gt, mask)
+    return float(errors.mean()) if errors.numel() else None
+
+
+def has_mask(mask: torch.Tensor) -> torch.Tensor:
+    """(B,) bool: the image has at least one masked pixel."""
+    return (mask > 0.5).flatten(1).any(1)
+
+
+def mean_over_masked(per_image: torch.Tensor, mask: torch.Tensor) -> float | None:
+    """The mean of a per-image figure (B,) over the images whose mask holds a pixel; None when none does
+    (a figure over zero pixels is undefined, not perfect)."""
+    keep = has_mask(mask).to(per_image.device)
+    values = per_image.flatten()[keep]
+    return float(values.mean()) if values.numel() else None
+
+
+def masked_ssim(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> float | None:
+    """SSIM (``ssim_per_image``) of maps zeroed off the mask, averaged over the images with a non-empty
+    mask; None when every mask is empty (the zeroed maps would match perfectly)."""
+    keep = has_mask(mask)
+    if not bool(keep.any()):
+        return None
+    if bool(keep.all()):  # one batched call, the figure as before
+        return float(structural_similarity_index_measure(pred, gt, data_range=1.0))
+    return float(ssim_per_image(pred[keep], gt[keep]).mean())
 
 
 def psnr_per_image(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:

@@ -162,6 +162,11 @@ def plot_png(rows: list[dict], metrics: dict[str, tuple[str, bool]], path, title
 
     fig, axes = plt.subplots(1, len(metrics), figsize=(5.2 * len(metrics), 4), squeeze=False)
     for ax, (key, (name, _higher)) in zip(axes[0], metrics.items()):
+        if all(r.get(key) is None for r in rows):  # undefined at every point (e.g. an empty mask): said, not drawn
+            ax.text(0.5, 0.5, "n/a: undefined at every point", ha="center", va="center", transform=ax.transAxes)
+            ax.set_xlabel("seconds per image (log)")
+            ax.set_ylabel(name)
+            continue
         for factor in dict.fromkeys(r["factor"] for r in rows):
             pts = [r for r in rows if r["factor"] == factor and r.get(key) is not None]
             ax.scatter([r["seconds_per_image"] for r in pts], [r[key] for r in pts], label=factor, s=22)
@@ -175,7 +180,9 @@ def plot_png(rows: list[dict], metrics: dict[str, tuple[str, bool]], path, title
         ax.set_xlabel("seconds per image (log)")
         ax.set_ylabel(name)
         ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=7)
+    drawn = [ax for ax in axes[0] if ax.get_legend_handles_labels()[0]]
+    if drawn:
+        drawn[0].legend(fontsize=7)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     atomic.save_figure(fig, path, dpi=110, metadata={"Software": None})  # no version string: same data, same bytes
@@ -214,7 +221,7 @@ def is_cross_light(batch: dict, i: int) -> bool:
 def sweep_intrinsics(task, imgs: dict, ip, tp: TradeParams, seed: int, progress=None) -> list[dict]:
     """Stage 1's points around ``ip`` (infer_intrinsics) on the images ``imgs``; ``task.predict(image,
     domains, sampling, generator)`` as pilight.train.intrinsics.IntrinsicsTask's."""
-    from pilight.eval.metrics import angular_errors, masked_mae, masked_psnr
+    from pilight.eval.metrics import masked_mae, masked_mean_angular_error, masked_psnr
 
     def predict(sp, gen):
         outs = [task.predict(b["image"], ip.domains, sp, gen) for b in chunks(imgs, ip.batch_size)]
@@ -224,7 +231,8 @@ def sweep_intrinsics(task, imgs: dict, ip, tp: TradeParams, seed: int, progress=
         m = imgs["mask"]
         s = {
             "albedo_psnr": masked_psnr(pred["albedo"], imgs["albedo"], m) if "albedo" in pred else None,
-            "normal_mean_deg": float(angular_errors(pred["normal"], imgs["normal"], m).mean())
+            # None, not NaN, over an empty mask (#36)
+            "normal_mean_deg": masked_mean_angular_error(pred["normal"], imgs["normal"], m)
             if "normal" in pred
             else None,
         }
