@@ -9,6 +9,14 @@ version). A rerun skips complete views and redoes the rest from an empty folder,
 render ends with the same files as an uninterrupted one, and a rerun with other params never keeps
 a view made with the old ones. Scene folders the params no longer ask for are removed. That is what
 lets `dvc repro` resume a killed render: the stage's output is `persist: true` (dvc.yaml).
+
+Verified by their bytes too (issue 36): the marker is JSON, the stamp and the sha256 of every file of the
+view; a scene's `.done` holds the sha256 of its scene.json. Before any view is rendered, every marked
+view is checked against its files (``verify_renders``): a view whose files no longer match (a flipped
+byte, a truncated EXR, a file missing or added) is rendered again, and the stage says which and why. A
+marker written before the hashes were recorded (only the stamp) is accepted once its files are all there
+and every EXR decodes whole, and its hashes are recorded then. Before, the stamps hashed only the inputs:
+a damaged EXR was skipped over and `dvc repro` recorded it in dvc.lock as the new truth.
 """
 
 from __future__ import annotations
@@ -87,9 +95,150 @@ def view_stamp(spec: dict, view: int, p: RenderParams) -> str:
     return hashlib.sha256(json.dumps(made_from, sort_keys=True).encode()).hexdigest()
 
 
+def _read_marker(done: Path) -> dict | None:
+    """A view's `.done`: {"stamp", "sha256"} (JSON), {"stamp"} for a marker holding only the stamp (written
+    before the hashes were recorded), None when missing or neither."""
+    try:
+        text = done.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        return None
+    if len(text) == 64 and all(c in "0123456789abcdef" for c in text):
+        return {"stamp": text}
+    try:
+        marker = json.loads(text)
+    except ValueError:
+        return None
+    ok = isinstance(marker, dict) and isinstance(marker.get("stamp"), str) and isinstance(marker.get("sha256"), dict)
+    return marker if ok else None
+
+
 def view_is_complete(root: Path, spec: dict, view: int, p: RenderParams) -> bool:
-    done = layout.view_dir(root, spec["id"], view) / layout.DONE_MARKER
-    return done.is_file() and done.read_text() == view_stamp(spec, view, p)
+    """The view's marker holds its stamp (its bytes are checked once per run, by ``verify_renders``)."""
+    marker = _read_marker(layout.view_dir(root, spec["id"], view) / layout.DONE_MARKER)
+    return marker is not None and marker["stamp"] == view_stamp(spec, view, p)
+
+
+def _view_files(vdir: Path) -> dict[str, str]:
+    """sha256 of every file of a view folder but its marker, by path relative to the folder."""
+    return {
+        f.relative_to(vdir).as_posix(): atomic.sha256_file(f)
+        for f in sorted(vdir.rglob("*"))
+        if f.is_file() and f.name != layout.DONE_MARKER
+    }
+
+
+def write_view_marker(vdir: Path, stamp: str) -> None:
+    """The view's `.done`: its stamp and the sha256 of each of its files, written last."""
+    atomic.write_text(
+        vdir / layout.DONE_MARKER, json.dumps({"stamp": stamp, "sha256": _view_files(vdir)}, sort_keys=True)
+    )
+
+
+def _expected_files(spec: dict, view: int, p: RenderParams) -> list[str]:
+    names = [f"{m}.exr" for m in layout.VIEW_MAPS]
+    light_maps = layout.LIGHT_MAPS + (("ball_lambertian",) if p.lambertian_ball else ())
+    for li in range(len(spec["lights"][view])):
+        names += [f"l{li:02d}/{m}.exr" for m in light_maps] + [f"l{li:02d}/preview.png"]
+    return names
+
+
+def _legacy_view_problem(vdir: Path, spec: dict, view: int, p: RenderParams) -> str | None:
+    """What is wrong with a view marked before hashes were recorded: a file missing, or an EXR that does not
+    decode whole (a truncation); None when it can be trusted once and its hashes recorded."""
+    from pilight.data.exr import ExrError, read_exr
+
+    for name in _expected_files(spec, view, p):
+        f = vdir / name
+        if not f.is_file():
+            return f"{f}: missing"
+        if name.endswith(".exr"):
+            try:
+                read_exr(f)
+            except ExrError as exc:
+                return str(exc)
+    return None
+
+
+def scene_marker(root: Path, sid: str) -> Path:
+    return Path(root) / sid / layout.DONE_MARKER
+
+
+def write_scene_marker(root: Path, sid: str) -> None:
+    """The scene's `.done`: the sha256 of its scene.json (what shard reads beside the views)."""
+    sidecar = Path(root) / sid / "scene.json"
+    atomic.write_text(scene_marker(root, sid), json.dumps({"sha256": {"scene.json": atomic.sha256_file(sidecar)}}))
+
+
+def verify_renders(root: Path, specs: list[dict], p: RenderParams, say=print) -> dict[str, int]:
+    """Check every marked view (and scene.json) of ``specs`` against its bytes (module docstring): a view
+    that no longer matches loses its marker, so it is rendered again, and ``say`` tells which file and why;
+    a stamp-only marker is upgraded once its files are whole. Returns the counts, and the scenes touched
+    under "scenes" (a Dask partition marker of theirs must go too)."""
+    counts = {"views": 0, "damaged": 0, "upgraded": 0}
+    touched: set[str] = set()
+    for spec in specs:
+        sid = spec["id"]
+        for v in range(len(spec["views"])):
+            vdir = layout.view_dir(root, sid, v)
+            marker = _read_marker(vdir / layout.DONE_MARKER)
+            if marker is None or marker["stamp"] != view_stamp(spec, v, p):
+                continue  # not complete (or made with other params): rendered again anyway
+            counts["views"] += 1
+            if "sha256" not in marker:
+                problem = _legacy_view_problem(vdir, spec, v, p)
+                if problem is None:
+                    write_view_marker(vdir, marker["stamp"])
+                    counts["upgraded"] += 1
+                    continue
+            else:
+                found, recorded = _view_files(vdir), marker["sha256"]
+                problem = next(
+                    (
+                        f"{vdir / n}: "
+                        + (
+                            "missing"
+                            if n not in found
+                            else "not written by the render"
+                            if n not in recorded
+                            else "its bytes differ from the sha256 in its .done marker"
+                        )
+                        for n in sorted(set(found) | set(recorded))
+                        if found.get(n) != recorded.get(n)
+                    ),
+                    None,
+                )
+                if problem is None:
+                    continue
+            say(f"render: {problem}: view {sid} v{v:02d} is rendered again")
+            (vdir / layout.DONE_MARKER).unlink()
+            counts["damaged"] += 1
+            touched.add(sid)
+        sidecar, smark = root / sid / "scene.json", scene_marker(root, sid)
+        if not sidecar.is_file():
+            continue
+        try:
+            recorded = (
+                json.loads(smark.read_text(encoding="utf-8"))["sha256"]["scene.json"] if smark.is_file() else None
+            )
+        except (OSError, ValueError, KeyError, TypeError):
+            recorded = ""
+        if recorded is None:  # written before its hash was recorded: trusted once if it reads as this scene's
+            try:
+                ok = json.loads(sidecar.read_text(encoding="utf-8")).get("id") == sid
+            except (OSError, ValueError, AttributeError):
+                ok = False
+            if ok:
+                write_scene_marker(root, sid)
+                continue
+        elif recorded == atomic.sha256_file(sidecar):
+            continue
+        say(f"render: {sidecar}: its bytes differ from what the render wrote: written again")
+        sidecar.unlink()
+        smark.unlink(missing_ok=True)
+        touched.add(sid)
+    counts["scenes"] = len(touched)
+    counts["touched"] = touched
+    return counts
 
 
 TMP_PREFIX = ".render_tmp_"  # a render's scratch folder inside the output root (same filesystem: renames are atomic)
@@ -162,7 +311,7 @@ def render_view(
             write_exr(layout.map_path(root, sid, view, name, li), arr, half=True)
         tiles = [lit[li]["image"], maps["albedo"], lit[li]["diffuse"], lit[li]["specular"], balls["ball"]]
         write_preview(layout.light_dir(root, sid, view, li) / "preview.png", tiles)
-    (layout.view_dir(root, sid, view) / layout.DONE_MARKER).write_text(stamp)
+    write_view_marker(layout.view_dir(root, sid, view), stamp)
     return raw
 
 
@@ -233,6 +382,7 @@ def render_scene(spec: dict, p: RenderParams, root: Path, hdri_dir: Path, tmp_di
         else:
             tick(len(spec["lights"][v]))
     write_json(root / sid / "scene.json", scene_sidecar(spec, handles, p))
+    write_scene_marker(root, sid)
     return rendered
 
 
@@ -257,6 +407,19 @@ def _render_all(
     t0 = time.perf_counter()
     (root / "manifest.json").unlink(missing_ok=True)  # written last: its presence means the folder is complete
     remove_unasked(root, specs)
+    checked = verify_renders(root, specs, p, say=lambda line: print(line, file=terminal, flush=True))
+    if checked["upgraded"]:
+        print(
+            f"render: {checked['upgraded']} view(s) marked before file hashes were recorded: every file there, every "
+            "EXR decoded whole; their hashes are recorded now",
+            file=terminal,
+        )
+    if checked["touched"] and p.cluster.executor == "dask":  # a partition marker would skip the damaged views
+        from pilight.render import cluster
+
+        for part in cluster.partitions(specs, p.cluster.scenes_per_task):
+            if any(s["id"] in checked["touched"] for s in part):
+                cluster._marker(root, part).unlink(missing_ok=True)
     try:
         if p.cluster.executor == "dask":
             from pilight.render.cluster import render_on_dask
