@@ -2,6 +2,7 @@
 
     python benchmarks/oracle_relight.py [--shards data/shards] [--pred data/intrinsics_pred] [--split test]
     python benchmarks/oracle_relight.py --per-map      # + one stage-1 map at a time, ground truth for the rest
+    python benchmarks/oracle_relight.py --tiers        # the default form's anchor and ceiling in the three tiers
 
 For every cross-light pair of the split, each candidate forms I_hat_b on the mask from physics and
 (some) ground truth, and copies the input off the mask. Printed per candidate: change_r2 on the full
@@ -12,6 +13,14 @@ form. --per-map adds one setting per map, "pred <map>": that map from stage 1 an
 ground truth, so the gap between the two settings is split by the map that opens it. It also adds
 "pred, albedo at GT level" and "pred albedo at GT level": the stage-1 albedo rescaled per image and
 channel to the ground truth's mean on the mask (what the albedo's level costs, apart from its pattern).
+
+--tiers grades the default form (physics-first, effective albedo with the SH-estimated source light,
+cell-smoothed lookups, GGX specular) as the evaluation's tiers do (pilight.eval.relight_tiers): its
+anchor (zero gains) and its ceiling (perfect cell gains) with the target ball as rendered (absolute)
+and relative to the input's estimated light (relative, told r = level(ball_b)/level(ball_a)), each
+scored raw and after its least-squares scale on the mask (scale-invariant), beside copying the input,
+the exposure-matched copy (input x r) and the copy x s*. What the relative tier gains over the
+absolute one is the level; what remains to the ceiling is structure.
 
 Candidates (A, N, m: the conditions; D, S: the target light's ground truth; "cell" = what a
 perfect network at one value per 4x4 codec cell would output):
@@ -46,6 +55,7 @@ from pilight.data.shards import eval_dataset, make_loader
 from pilight.diffusion.codec import cell_mean, cell_smooth
 from pilight.eval.light_following import ChangeR2
 from pilight.eval.metrics import psnr_per_image, ssim_per_image
+from pilight.eval.scale_invariant import scaled_to
 from pilight.physics.calculated import diffuse_calculated, specular_calculated
 from pilight.physics.source_light import estimate_source_ball
 from pilight.physics.specular_model import specular_from_ball
@@ -118,6 +128,42 @@ def candidates(b: dict, c: dict) -> dict[str, torch.Tensor]:
     return out
 
 
+def tier_forms(b: dict, c: dict) -> dict[str, dict[str, torch.Tensor]]:
+    """{tier: {name: linear relit}} for --tiers (module docstring); the scale-invariant tier's images are
+    the absolute ones, scaled when scored."""
+    from pilight.eval.relight_tiers import exposure_matched_copy
+    from pilight.relight import physics_first as pf
+    from pilight.relight.intensity import relative_pair, to_source_level
+
+    I_a, S, mask = b["image_a"].float(), b["specular_b"].float(), b["mask"]
+    source = pf.source_balls(I_a, c, mask, b["ball_b"].shape[-1])
+    cs = lambda g: cell_smooth(cell_mean(g, CELL), CELL)
+    zero = torch.zeros_like(I_a)
+    out = {"absolute": {"copy the input": I_a}, "relative": {"copy the input": I_a}}
+    out["relative"]["exposure-matched copy (input x r)"] = exposure_matched_copy(I_a, b["ball_a"], b["ball_b"])
+    for tier in ("absolute", "relative"):
+        balls = {k: b[k] for k in ("ball_b", "ball_lambertian_b") if k in b}
+        if tier == "relative":
+            balls = to_source_level({k: relative_pair(b)[k] for k in balls}, *source)
+        anc = pf.anchors(
+            I_a,
+            c,
+            mask,
+            balls["ball_b"],
+            balls.get("ball_lambertian_b"),
+            ball_a=source[0],
+            found=source[1],
+            smooth_cell=CELL,
+            specular="ggx",
+        )
+        g_d = pf.gain_of(pf.diffuse_target(b["image_b"], S, anc.albedo), anc.d_calc, anc.eps)
+        g_s = pf.gain_of(S, anc.s_calc, anc.eps)
+        out[tier]["anchor (zero gains)"] = pf.compose_relit(anc, zero, zero)["relit"]
+        out[tier]["ceiling (perfect cell gains)"] = pf.compose_relit(anc, cs(g_d), cs(g_s))["relit"]
+    out["scale_invariant"] = {k: v for k, v in out["absolute"].items()}
+    return out
+
+
 def conditions(
     b: dict, preds: dict | None, *, only: str | None = None, at_gt_level: bool = False
 ) -> dict[str, torch.Tensor]:
@@ -142,6 +188,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--split", default="test")
     ap.add_argument("--json", type=Path, default=None, help="also write the table as JSON")
     ap.add_argument("--per-map", action="store_true", help="also one stage-1 map at a time (needs --pred)")
+    ap.add_argument("--tiers", action="store_true", help="only the default form, in the three tiers")
     args = ap.parse_args(argv)
     preds = optional_predictions(args.shards, args.pred, args.split, "oracle") if args.pred else None
     if args.per_map and preds is None:
@@ -165,8 +212,15 @@ def main(argv: list[str] | None = None) -> int:
         u_in, u_gt, mask = tonemap01(b["image_a"]), tonemap01(b["image_b"]), b["mask"]
         for setting, (p, options) in settings.items():
             c = conditions(b, p, **options)
-            forms = {"copy the input": b["image_a"].float()}
-            forms.update({k: torch.where(mask > 0.5, v, b["image_a"].float()) for k, v in candidates(b, c).items()})
+            if args.tiers:
+                forms = {
+                    f"{tier}: {k}": scaled_to(v, b["image_b"].float(), mask) if tier == "scale_invariant" else v
+                    for tier, fs in tier_forms(b, c).items()
+                    for k, v in fs.items()
+                }
+            else:
+                forms = {"copy the input": b["image_a"].float()} | candidates(b, c)
+            forms = {k: torch.where(mask > 0.5, v, b["image_a"].float()) for k, v in forms.items()}
             for name, img in forms.items():
                 r = scores[setting].setdefault(name, {"r2": ChangeR2(), "psnr": [], "ssim": []})
                 u = tonemap01(img)
@@ -176,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
     table = {}
     for setting, rows in scores.items():
         print(f"\n{args.split}: {pairs} cross-light pairs, conditions {setting}")
-        print(f"{'candidate':28s} {'r2 full':>8s} {'r2 mask':>8s} {'PSNR':>7s} {'SSIM':>6s}")
+        print(f"{'candidate':44s} {'r2 full':>8s} {'r2 mask':>8s} {'PSNR':>7s} {'SSIM':>6s}")
         for name, r in rows.items():
             r2 = r["r2"].compute()
             row = {
@@ -187,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
             }
             table.setdefault(setting, {})[name] = row
             print(
-                f"{name:28s} {row['change_r2_full']:8.3f} {row['change_r2_mask']:8.3f} {row['psnr']:7.2f} {row['ssim']:6.3f}"
+                f"{name:44s} {row['change_r2_full']:8.3f} {row['change_r2_mask']:8.3f} {row['psnr']:7.2f} {row['ssim']:6.3f}"
             )
     if args.json:
         args.json.write_text(json.dumps({"pairs": pairs, "split": args.split, "oracles": table}, indent=1) + "\n")

@@ -99,8 +99,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("-S", dest="overrides", action="append", default=[], metavar="relight.KEY=VALUE")
     ap.add_argument("--seeds", type=int, nargs="+", default=[42])
     ap.add_argument("--name", default=None)
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
     raw = apply_overrides(read_params(args.params)["relight"], args.overrides, root="relight")
     RelightParams.model_validate(raw)
     from pilight import machine

@@ -36,6 +36,26 @@ MICRO_TRADE = {
 }
 
 
+def save_micro_base(folder: Path, params: dict) -> Path:
+    """A stand-in for the shipped base (weights/pilight-base) that the micro params' `unet.init: base` loads:
+    their own tiny networks, untrained, saved as the export stage saves the real one (float16)."""
+    import torch
+
+    from pilight.params import IntrinsicsParams, RelightParams
+    from pilight.train.build import save_model
+    from pilight.train.intrinsics import IntrinsicsTask
+    from pilight.train.relight import RelightTask
+
+    torch.manual_seed(0)
+    for stage, cls, task in (("intrinsics", IntrinsicsParams, IntrinsicsTask), ("relight", RelightParams, RelightTask)):
+        raw = {**params[stage], "unet": {**params[stage]["unet"], "init": "scratch"}}
+        if stage == "relight":
+            raw["conditions"] = "gt"  # building the network needs no predictions
+        p = cls.model_validate(raw)
+        save_model(task(p, folder, seed=0).stack, folder / stage, p.model_dump(mode="json"), dtype=torch.float16)
+    return folder
+
+
 def make_micro_project(d: Path, train: dict | None = None) -> dict[str, str]:
     """Populate `d` (code, dvc.yaml, micro params; `train` overrides both stages' train section),
     git init + dvc init + one commit; returns the environment to run dvc in."""
@@ -53,6 +73,7 @@ def make_micro_project(d: Path, train: dict | None = None) -> dict[str, str]:
     params["evaluate"]["trade"].update(MICRO_TRADE)
     params["evaluate"].update(grid_images=2, relight_lights=3)
     (d / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    save_micro_base(d / "weights" / "pilight-base", params)
     # PYTHONPATH: the stage scripts import the installed package; here that is the project's own copy.
     env = {
         **os.environ,
