@@ -17,7 +17,9 @@ profile (tests/test_pipeline_e2e.py's), so it takes minutes, not hours:
    match the reference byte for byte.
 
 Printed per kill: the stage, when it was killed, whether the rerun survived (exit 0 and identical
-bytes), and the rerun's seconds against a clean run of the stages it reran ("redone"). The outputs
+bytes), the temporaries of killed writes still in the project after the rerun (a stage sweeps its own
+when it runs; one DVC restores from its run cache does not run, so they wait for its next run), and
+the rerun's seconds against a clean run of the stages it reran ("redone"). The outputs
 of `evaluate`, `trade` and `render_trade` hold timings or are derived from the others; they are
 rerun but not compared.
 
@@ -38,6 +40,7 @@ import argparse
 import hashlib
 import os
 import random
+import re
 import shutil
 import signal
 import subprocess
@@ -70,6 +73,19 @@ def digest(d: Path) -> dict[str, str]:
             if p.is_file():
                 out[str(p.relative_to(d))] = hashlib.sha256(p.read_bytes()).hexdigest()
     return out
+
+
+def temporaries(d: Path) -> int:
+    """What killed writes leave in the project's output folders (pilight.atomic.sweep_temporaries' patterns)."""
+    sys.path.insert(0, str(ROOT))
+    from pilight.atomic import _FILE_TEMP, _INNER_TEMP
+
+    beside = re.compile(r"^\..+\.(tmp-.+|old-.+|tmp|old)$")
+    found = 0
+    for top in ("data", "models", "metrics", "reports", "plots", "checkpoints"):
+        for p in (d / top).rglob(".*") if (d / top).is_dir() else []:
+            found += bool(beside.match(p.name) or _FILE_TEMP.match(p.name) or _INNER_TEMP.match(p.name))
+    return found
 
 
 def dvc(d: Path, env: dict, *args: str, log) -> tuple[int, float]:
@@ -199,8 +215,10 @@ def stage_crash_test(d: Path, kills: int, rng: random.Random, log) -> int | None
             return None
     reference = digest(d)
     print(f"clean run: {sum(clean.values()):.0f} s; {len(reference)} output files compared; in {d}")
-    print("| kill | stage | killed after | rerun exit | identical | rerun s | clean s of the stages rerun |")
-    print("|---|---|---|---|---|---|---|")
+    print(
+        "| kill | stage | killed after | rerun exit | identical | temporaries left | rerun s | clean s of the stages rerun |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
     survived = 0
     for k in range(1, kills + 1):
         stage = rng.choice(STAGES)
@@ -231,7 +249,9 @@ def stage_crash_test(d: Path, kills: int, rng: random.Random, log) -> int | None
         survived += same
         when = f"{after:.1f} s" + (" (it had ended)" if finished else "")
         print(
-            f"| {k} | {stage} | {when} | {rc} | {'yes' if same else 'NO'} | {seconds:.0f} | {redone:.0f} |", flush=True
+            f"| {k} | {stage} | {when} | {rc} | {'yes' if same else 'NO'} | {temporaries(d)} | {seconds:.0f} "
+            f"| {redone:.0f} |",
+            flush=True,
         )
     print(f"survived {survived} of {kills} kills")
     return survived
