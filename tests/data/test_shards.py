@@ -215,7 +215,7 @@ def test_corrupt_input_is_named_and_leaves_nothing(renders, tmp_path, case):
 def test_stage_script_exits_nonzero_with_clear_message(renders, tmp_path, case):
     bad, key = corrupt(renders, case)
     params = tmp_path / "params.yaml"
-    params.write_text("base:\n  seed: 3\nrender: {}\nshard:\n  maxcount: 8\n")
+    params.write_text("base:\n  seed: 3\nrender: {resolution: 128}\nshard:\n  maxcount: 8\n")
     out = tmp_path / "out"
     proc = subprocess.run(
         [
@@ -239,7 +239,7 @@ def test_stage_script_exits_nonzero_with_clear_message(renders, tmp_path, case):
 
 def test_stage_script_succeeds_and_rejects_bad_params(renders, tmp_path):
     params = tmp_path / "params.yaml"
-    params.write_text("base:\n  seed: 3\nrender: {}\nshard:\n  maxcount: 0\n")
+    params.write_text("base:\n  seed: 3\nrender: {resolution: 128}\nshard:\n  maxcount: 0\n")
     cmd = [
         sys.executable,
         str(REPO / "stages" / "shard.py"),
@@ -252,7 +252,7 @@ def test_stage_script_succeeds_and_rejects_bad_params(renders, tmp_path):
     ]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     assert proc.returncode == 2 and "shard.maxcount = 0" in proc.stderr, proc.stderr
-    params.write_text("base:\n  seed: 3\nrender: {}\nshard:\n  maxcount: 8\n")
+    params.write_text("base:\n  seed: 3\nrender: {resolution: 128}\nshard:\n  maxcount: 8\n")
     proc = subprocess.run(cmd, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     assert read_index(tmp_path / "out")["splits"]["train"]["samples"] == 9
