@@ -16,7 +16,14 @@ from pilight.data.shards import read_index
 from tests.stage_scripts import REPO, params_file, tiny_shards, training_outputs
 
 TINY = {
-    "unet": {"block_out_channels": [8, 8], "layers_per_block": 1, "attention_head_dim": 4, "cross_attention_dim": 8},
+    "unet": {
+        "block_out_channels": [8, 8],
+        "layers_per_block": 1,
+        "attention_head_dim": 4,
+        "cross_attention_dim": 8,
+        "init": "scratch",  # whatever the default's init (a shipped base need not exist here)
+        "path": None,
+    },
     "codec": {"kind": "pixel", "factor": 4},
     "train": {
         "steps": 2,
