@@ -119,11 +119,14 @@ def test_a_diverging_stage_stops_and_saves_no_model(tmp_path, capsys):
 
     shards = tiny_shards(tmp_path)
     train = {"steps": 30, "batch_size": 2, "checkpoint_every": 100, "image_every": 100, "log_every": 1}
-    train |= {"warmup_steps": 0, "lr": 1.0, "max_grad_norm": None}
+    train |= {"warmup_steps": 0, "lr": 1.0, "max_grad_norm": None, "lr_schedule": "constant", "grad_accum": 1}
+    train |= {"cond_dropout": 0.1, "terminal_fraction": 0.5, "ema_decay": 0.0}
     unet = {"block_out_channels": [8, 8], "layers_per_block": 1, "attention_head_dim": 4, "cross_attention_dim": 8}
-    params = params_file(
-        tmp_path, {"intrinsics": {"unet": unet, "codec": {"kind": "pixel", "factor": 4}, "train": train}}
-    )
+    unet |= {"init": "scratch", "path": None}
+    # pinned whatever params.yaml's default is: the diffusion objective, one UNet item per domain
+    stage = {"unet": unet, "codec": {"kind": "pixel", "factor": 4}, "train": train, "objective": "diffusion"}
+    stage |= {"layout": "domains", "augment": {"flip": False, "crop": None}, "schedule": {"terminal_input": "noise"}}
+    params = params_file(tmp_path, {"intrinsics": stage})
     spec = importlib.util.spec_from_file_location("stage_train_intrinsics", REPO / "stages" / "train_intrinsics.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
