@@ -23,7 +23,7 @@ MICRO = {
     "cycles": {"samples": 8, "adaptive_min_samples": 4},
 }
 MICRO_UNET = {"block_out_channels": [32, 32], "cross_attention_dim": 32}
-MICRO_TRAIN = {"steps": 3, "checkpoint_every": 2, "image_every": 2, "log_every": 1, "warmup_steps": 0}
+MICRO_TRAIN = {"steps": 3, "batch_size": 2, "checkpoint_every": 2, "image_every": 2, "log_every": 1, "warmup_steps": 0}
 MICRO_TRADE = {
     "images": 2,
     "steps": [1, 2],

@@ -1,0 +1,62 @@
+"""`unet.init: base`: training starts from a pilight-base folder's weights, and a base that does not fit
+the params is refused naming the key (pilight/base_model.py). `scratch` and `pretrained` are tested in
+tests/diffusion/test_diffusion_unet.py and tests/train/test_intrinsics_stage.py."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from pilight.base_model import BaseModelError, init_from_base
+from pilight.params import IntrinsicsParams
+from pilight.train.build import save_model, trainable_state
+from pilight.train.intrinsics import IntrinsicsTask
+
+TINY = {
+    "unet": {"block_out_channels": [32, 32], "layers_per_block": 1, "attention_head_dim": 8, "cross_attention_dim": 32},
+    "codec": {"kind": "pixel", "factor": 4},
+}
+
+
+def _params(**unet) -> IntrinsicsParams:
+    return IntrinsicsParams.model_validate({**TINY, "unet": {**TINY["unet"], **unet}})
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory):
+    """A tiny base saved as the export stage saves the real one (float16), from its own seed."""
+    folder = tmp_path_factory.mktemp("base")
+    torch.manual_seed(7)
+    p = _params(init="scratch")
+    task = IntrinsicsTask(p, folder, seed=0)
+    save_model(task.stack, folder / "intrinsics", p.model_dump(mode="json"), dtype=torch.float16)
+    return folder, {k: v.clone() for k, v in trainable_state(task.stack.model).items()}
+
+
+def test_init_base_loads_the_base_weights(base, tmp_path):
+    folder, saved = base
+    torch.manual_seed(8)  # another random init, which the base must replace entirely
+    p = _params(init="base", path=str(folder))
+    task = IntrinsicsTask(p, tmp_path, seed=0)
+    before = trainable_state(task.stack.model)
+    assert any(not torch.equal(before[k], saved[k]) for k in saved)
+    assert init_from_base(task.stack, p, "intrinsics") == folder / "intrinsics"
+    after = trainable_state(task.stack.model)
+    for k, v in saved.items():  # stored in float16: equal to the saved weights at half precision
+        torch.testing.assert_close(after[k], v.half().float(), rtol=0, atol=0)
+
+
+def test_a_base_with_another_network_is_refused_naming_the_key(base, tmp_path):
+    folder, _ = base
+    p = _params(init="base", path=str(folder), attention_head_dim=16)
+    task = IntrinsicsTask(p, tmp_path, seed=0)
+    with pytest.raises(BaseModelError, match=r"intrinsics\.unet\.attention_head_dim: the base has 8, the params ask for 16"):
+        init_from_base(task.stack, p, "intrinsics")
+
+
+def test_a_missing_base_names_the_file_and_the_key(tmp_path):
+    (tmp_path / "nowhere").mkdir()  # a folder that is not a base (a missing one fails params validation)
+    p = _params(init="base", path=str(tmp_path / "nowhere"))
+    task = IntrinsicsTask(p, tmp_path, seed=0)
+    with pytest.raises(BaseModelError, match=r"intrinsics\.unet\.init is 'base' but .*nowhere/intrinsics/config\.json"):
+        init_from_base(task.stack, p, "intrinsics")
