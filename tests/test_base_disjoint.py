@@ -51,3 +51,14 @@ def test_the_held_out_split_has_shapes_and_textures_the_base_never_saw():
 def test_the_base_builds_the_defaults_networks():
     for stage in ("intrinsics", "relight"):
         assert mismatches(stage, DEFAULT[stage], BASE[stage]) == []
+
+
+def test_the_defaults_dvc_repro_never_collects_the_base_pipeline():
+    """base/ is a DVC project of its own: the root's `dvc repro` (the README's first command) must not
+    run the base's stages, whose data (hours of renders) a fresh clone does not have."""
+    from dvc.repo import Repo
+
+    assert (REPO / "base" / ".dvc" / "config").is_file()
+    with Repo(str(REPO)) as root:
+        paths = {stage.path for stage in root.index.stages}
+    assert paths and all(not p.startswith(str(REPO / "base")) for p in paths), paths

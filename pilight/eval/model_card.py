@@ -52,7 +52,7 @@ def model_card(
         "",
         "Both stages of pilight (stage 1: photo -> albedo, normal, roughness, metallic; stage 2: photo, intrinsics",
         "and a light ball -> relit image, diffuse D and specular S), trained from scratch on procedural Blender",
-        "scenes by `dvc repro base/dvc.yaml`. No third-party weights went into it.",
+        "scenes by `cd base && dvc repro`. No third-party weights went into it.",
         "",
         f"Weights: {weights_bytes / 2**20:.1f} MB in float16 safetensors (they load as float32).",
         "",
