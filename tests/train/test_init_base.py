@@ -50,7 +50,9 @@ def test_a_base_with_another_network_is_refused_naming_the_key(base, tmp_path):
     folder, _ = base
     p = _params(init="base", path=str(folder), attention_head_dim=16)
     task = IntrinsicsTask(p, tmp_path, seed=0)
-    with pytest.raises(BaseModelError, match=r"intrinsics\.unet\.attention_head_dim: the base has 8, the params ask for 16"):
+    with pytest.raises(
+        BaseModelError, match=r"intrinsics\.unet\.attention_head_dim: the base has 8, the params ask for 16"
+    ):
         init_from_base(task.stack, p, "intrinsics")
 
 
