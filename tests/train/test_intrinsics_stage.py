@@ -14,7 +14,13 @@ from pilight.train.intrinsics import IntrinsicsTask, domain_targets, latent_mask
 from tests.stage_scripts import params_file, run_stage, tiny_shards, training_outputs
 
 TINY = {
-    "unet": {"block_out_channels": [32, 32], "layers_per_block": 1, "attention_head_dim": 8, "cross_attention_dim": 32},
+    "unet": {
+        "init": "scratch",
+        "block_out_channels": [32, 32],
+        "layers_per_block": 1,
+        "attention_head_dim": 8,
+        "cross_attention_dim": 32,
+    },
     "codec": {"kind": "pixel", "factor": 4},
     "train": {"steps": 4, "batch_size": 2, "checkpoint_every": 2, "image_every": 2, "log_every": 1, "warmup_steps": 0},
 }

@@ -20,7 +20,13 @@ from pilight.train.relight import RelightTask
 from tests.stage_scripts import params_file, run_stage, tiny_shards, training_outputs
 
 TINY = {
-    "unet": {"block_out_channels": [32, 32], "layers_per_block": 1, "attention_head_dim": 8, "cross_attention_dim": 32},
+    "unet": {
+        "init": "scratch",
+        "block_out_channels": [32, 32],
+        "layers_per_block": 1,
+        "attention_head_dim": 8,
+        "cross_attention_dim": 32,
+    },
     "codec": {"kind": "pixel", "factor": 4},
     "conditions": "gt",
     "train": {"steps": 3, "batch_size": 2, "checkpoint_every": 3, "image_every": 3, "log_every": 1, "warmup_steps": 0},
