@@ -15,6 +15,19 @@ from tests.data.test_shards import write_fake_renders
 
 REPO = Path(__file__).resolve().parents[1]
 
+# The stage-script tests' network: a tiny UNet from scratch (whatever the default's unet.init) on the
+# lossless pixel codec, shared by both stages' tests so they build the same small model.
+TINY_NETWORK = {
+    "unet": {
+        "init": "scratch",
+        "block_out_channels": [32, 32],
+        "layers_per_block": 1,
+        "attention_head_dim": 8,
+        "cross_attention_dim": 32,
+    },
+    "codec": {"kind": "pixel", "factor": 4},
+}
+
 
 def tiny_shards(root: Path) -> Path:
     """Shards of fake 16^2 renders (8^2 balls) under root/shards."""

@@ -11,15 +11,11 @@ from pilight.base_model import BaseModelError, init_from_base
 from pilight.params import IntrinsicsParams
 from pilight.train.build import save_model, trainable_state
 from pilight.train.intrinsics import IntrinsicsTask
-
-TINY = {
-    "unet": {"block_out_channels": [32, 32], "layers_per_block": 1, "attention_head_dim": 8, "cross_attention_dim": 32},
-    "codec": {"kind": "pixel", "factor": 4},
-}
+from tests.stage_scripts import TINY_NETWORK
 
 
 def _params(**unet) -> IntrinsicsParams:
-    return IntrinsicsParams.model_validate({**TINY, "unet": {**TINY["unet"], **unet}})
+    return IntrinsicsParams.model_validate({**TINY_NETWORK, "unet": {**TINY_NETWORK["unet"], **unet}})
 
 
 @pytest.fixture(scope="module")

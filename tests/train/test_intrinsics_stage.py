@@ -11,17 +11,10 @@ import torch
 from pilight.data.shards import intrinsics_dataset, make_loader
 from pilight.params import DOMAINS, IntrinsicsParams, SamplingParams
 from pilight.train.intrinsics import IntrinsicsTask, domain_targets, latent_mask, masked_latent_mse, targets_to_maps
-from tests.stage_scripts import params_file, run_stage, tiny_shards, training_outputs
+from tests.stage_scripts import TINY_NETWORK, params_file, run_stage, tiny_shards, training_outputs
 
 TINY = {
-    "unet": {
-        "init": "scratch",
-        "block_out_channels": [32, 32],
-        "layers_per_block": 1,
-        "attention_head_dim": 8,
-        "cross_attention_dim": 32,
-    },
-    "codec": {"kind": "pixel", "factor": 4},
+    **TINY_NETWORK,
     "train": {"steps": 4, "batch_size": 2, "checkpoint_every": 2, "image_every": 2, "log_every": 1, "warmup_steps": 0},
 }
 

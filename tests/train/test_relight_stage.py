@@ -17,17 +17,10 @@ from pilight.relight.conditions import PRED_DOMAINS, choose_intrinsics
 from pilight.relight.encoding import tonemap
 from pilight.relight.physics_terms import physics_terms
 from pilight.train.relight import RelightTask
-from tests.stage_scripts import params_file, run_stage, tiny_shards, training_outputs
+from tests.stage_scripts import TINY_NETWORK, params_file, run_stage, tiny_shards, training_outputs
 
 TINY = {
-    "unet": {
-        "init": "scratch",
-        "block_out_channels": [32, 32],
-        "layers_per_block": 1,
-        "attention_head_dim": 8,
-        "cross_attention_dim": 32,
-    },
-    "codec": {"kind": "pixel", "factor": 4},
+    **TINY_NETWORK,
     "conditions": "gt",
     "train": {"steps": 3, "batch_size": 2, "checkpoint_every": 3, "image_every": 3, "log_every": 1, "warmup_steps": 0},
 }
