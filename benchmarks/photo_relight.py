@@ -1,7 +1,7 @@
 """A real photo relit from the left and from the right: does the light follow, and does the photo keep its
 detail and exposure? (The figures of tests/cli/test_light_flip.py, printed.)
 
-    python benchmarks/photo_relight.py [--models DIR] [--photo FILE] [--intensity 1] [--absolute]
+    python benchmarks/photo_relight.py [--models DIR] [--photo FILE] [--intensity 1] [--absolute] [--exposure photo|light]
 
 Default photo: scikit-image's astronaut (512^2). Default models: the pipeline's models/, else the
 shipped base. Prints, per light, the relit left/right luminance asymmetry (R - L)/(R + L), the detail
@@ -30,6 +30,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--photo", type=Path, default=None)
     ap.add_argument("--intensity", type=float, default=1.0)
     ap.add_argument("--absolute", action="store_true")
+    ap.add_argument("--exposure", choices=("photo", "light"), default="photo", help="pilight relight --exposure")
     args = ap.parse_args(argv)
     from pilight import lights, machine
     from pilight.base_model import default_models
@@ -48,14 +49,18 @@ def main(argv: list[str] | None = None) -> int:
     pipe = PILightPipeline.from_pretrained(models, device="cpu", params=REPO / "params.yaml")
     ls = [lights.named(n, args.intensity) for n in ("left", "right")]
     t0 = time.perf_counter()
-    out = pipe.relight(photo, ls, absolute=args.absolute)
+    out = pipe.relight(photo, ls, absolute=args.absolute, exposure=args.exposure)
     seconds = time.perf_counter() - t0
     rgb = photo.rgb
     print(f"{photo.name}: {rgb.shape[1]}x{rgb.shape[0]}, asymmetry {lr_asymmetry(rgb):+.3f}; models {models}")
-    print("| light | asymmetry | detail ratio | exposure ratio |\n|---|---|---|---|")
-    for light, relit in zip(ls, out.relit):
+    print(f"exposure: {args.exposure}")
+    print("| light | asymmetry | detail ratio | exposure ratio | exposure gain |\n|---|---|---|---|---|")
+    for light, relit, gain in zip(ls, out.relit, out.exposure_gain):
         exposure = float((relit @ LUMINANCE).mean() / (rgb @ LUMINANCE).mean())
-        print(f"| {light.name} | {lr_asymmetry(relit):+.3f} | {detail(relit) / detail(rgb):.2f} | {exposure:.2f} |")
+        print(
+            f"| {light.name} | {lr_asymmetry(relit):+.3f} | {detail(relit) / detail(rgb):.2f} | {exposure:.2f} "
+            f"| {gain:.2f} |"
+        )
     print(f"{seconds:.2f} s for both lights (one relight call, stage 1 once) on {machine.one_line()}")
     return 0
 

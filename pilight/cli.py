@@ -204,6 +204,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="the lights' intensity is absolute, not relative to the photo's own light (a calibrated plate, "
         "e.g. a gray ball photographed in the scene)",
     )
+    r.add_argument(
+        "--exposure",
+        choices=("photo", "light"),
+        default="photo",
+        help="what --intensity 1 keeps (relative intensity): photo = the relit picture's mean luminance is k "
+        "times the photo's (default, as a camera keeps its exposure); light = the light's level is k times the "
+        "photo's estimated light, so a light from the side darkens the picture",
+    )
     _model_options(r, "relight")
     b = sub.add_parser(
         "ball",
@@ -715,7 +723,7 @@ def cmd_relight(args) -> int:
             try:
                 with _say_warnings():
                     photo = read_photo(p)
-                    out = pipe.relight(photo, pending[p], name=str(p), absolute=args.absolute)
+                    out = pipe.relight(photo, pending[p], name=str(p), absolute=args.absolute, exposure=args.exposure)
             except PhotoError as exc:
                 print(f"pilight: {exc}", file=sys.stderr)
                 failed += 1

@@ -45,7 +45,7 @@ from pilight.detail import resize, with_input_detail
 from pilight.lights import Light
 from pilight.params import DOMAINS, BaseParams, RenderParams, SamplingParams, _Section
 from pilight.photo import Photo, as_photo, check_size, lcm, processing_size
-from pilight.relight.intensity import relative_light
+from pilight.relight.intensity import EXPOSURES, exposure_gain, relative_light
 
 PIPELINE_FILE = "pipeline.json"
 STAGES = ("intrinsics", "relight")
@@ -181,6 +181,7 @@ class RelightOutput:
     specular: np.ndarray | None  # (K, H, W, 3) S
     balls: np.ndarray  # (K, S, S, 3) the light balls the model was given
     lights: list[Light]
+    exposure_gain: np.ndarray  # (K,) what ``exposure="photo"`` multiplied each light by (1 with "light" or absolute)
     intrinsics: DecompositionOutput  # what stage 2 was conditioned on
 
 
@@ -503,6 +504,7 @@ class PILightPipeline:
         intrinsics: DecompositionOutput | None = None,
         name: str = "<image>",
         absolute: bool = False,
+        exposure: str = "photo",
     ) -> RelightOutput:
         """A photo under each of ``lights``: stage 1 once (or ``intrinsics`` from ``decompose`` of the
         same photo at the same resolution), then stage 2 for all lights in batches of
@@ -510,10 +512,16 @@ class PILightPipeline:
 
         Intensity is relative by default: a light of intensity k gets k times the photo's own estimated
         light (k = 1 keeps the exposure; pilight.relight.intensity). ``absolute``: the lights' balls as
-        they are (a calibrated plate)."""
+        they are (a calibrated plate).
+
+        ``exposure`` (relative intensity only): ``photo`` scales each relit image (its light, by linearity)
+        so that its mean luminance on the mask is k times the photo's; ``light`` keeps the light's level,
+        so a light from the side darkens the picture (pilight.relight.intensity)."""
         lights = [lights] if isinstance(lights, Light) else list(lights)
         if not lights:
             raise PipelineError("relight needs at least one light")
+        if exposure not in EXPOSURES:
+            raise PipelineError(f"exposure must be one of {', '.join(EXPOSURES)}, got {exposure!r}")
         photo, x, m = self._prepare(image, resolution, name)
         if intrinsics is None:
             intrinsics = self.decompose(photo, resolution=resolution, name=name)
@@ -526,7 +534,8 @@ class PILightPipeline:
         s = self.config.ball_resolution
         balls = torch.stack([resize(l.ball.float()[None], (s, s))[0] for l in lights]).clamp_min(0)
         intensity = "absolute" if absolute else "relative"
-        given = balls if absolute else relative_light(balls, torch.tensor([float(l.intensity) for l in lights]))
+        levels = torch.tensor([float(l.intensity) for l in lights])
+        given = balls if absolute else relative_light(balls, levels)
         sp = self.config.relight_sampling
         outs: dict[str, list[torch.Tensor]] = {}
         for start in range(0, len(lights), sp.batch_size):
@@ -541,6 +550,10 @@ class PILightPipeline:
                 outs.setdefault(key, []).append(v.float().cpu())
         h, w = photo.size
         cat = {key: torch.cat(v) for key, v in outs.items()}
+        gain = torch.ones(len(lights))
+        if not absolute and exposure == "photo":
+            gain = exposure_gain(cat["relit"], x, m, levels)
+            cat = {key: v * gain[:, None, None, None] for key, v in cat.items()}
         hwc = lambda t: t.clamp_min(0).permute(0, 2, 3, 1).contiguous().numpy()
         full = {key: hwc(resize(v, (h, w))) for key, v in cat.items()}
         # the relit image keeps the photo's full-resolution detail: the change is carried at the processing
@@ -554,4 +567,5 @@ class PILightPipeline:
             balls=balls.permute(0, 2, 3, 1).contiguous().numpy(),
             lights=lights,
             intrinsics=intrinsics,
+            exposure_gain=gain.numpy(),
         )

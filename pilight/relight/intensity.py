@@ -16,6 +16,15 @@ cancels on diffuse pixels: albedo x 2 halves the estimated light, doubles A_eff 
 What does not cancel is the dielectric highlight: F0 = 0.04 whatever the albedo, so S_b follows the
 estimated light's level (tests/relight/test_intensity.py measures both).
 
+A photo relit under a light from the side at the photo's own light level is darker than the photo: the
+light reaches less of what the camera sees (the astronaut at k = 1 from the left: 0.31 of its mean
+luminance with pilight-base, 0.50 with the physics anchor alone). A photographer would keep the
+exposure, so the photo API does too by default (``exposure: photo``): each relit image is scaled so
+that its mean luminance on the mask is k times the photo's (``exposure_gain``). As relighting is linear
+in the light, that is the same light made brighter or dimmer by the gain, the same for D, S and the
+relit image, and it is computed once per light, so k still scales the result linearly.
+``exposure: light`` keeps the light's level as the relit image's exposure (a fixed camera).
+
 For rendered pairs (shards) the truth's k is r = level(ball_b) / level(ball_a), so the relative ball is
 ball_b / level(ball_a) (``relative_pair``). For a user's light of intensity k, it is the light's ball
 scaled to level k (``relative_light``). An input whose light cannot be estimated (too few usable
@@ -29,6 +38,9 @@ import torch
 from pilight.physics.envmap import light_level
 
 INTENSITIES = ("relative", "absolute")
+EXPOSURES = ("photo", "light")  # what k = 1 keeps in the photo API: the photo's exposure, or its light's level
+MAX_EXPOSURE_GAIN = 4.0  # two stops either way: a light from behind leaves the visible side in shadow, and
+# brightening that further only magnifies the anchor's eps floor (EPS_LEVEL) and the gains' noise
 BALL_KEYS = ("ball_b", "ball_lambertian_b")  # the target light's balls in a pairs batch
 
 
@@ -50,3 +62,20 @@ def to_source_level(balls: dict[str, torch.Tensor], source: torch.Tensor, found:
     inputs not ``found`` keep them as they are."""
     scale = torch.where(found[:, None, None, None], light_level(source), torch.ones_like(light_level(source)))
     return {k: v * scale.to(v.dtype) for k, v in balls.items()}
+
+
+def mean_luminance(image: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """(B, 3, H, W) linear RGB and a (1 or B, 1, H, W) mask -> (B,) Rec. 709 luminance averaged on the mask."""
+    y = 0.2126 * image[:, 0] + 0.7152 * image[:, 1] + 0.0722 * image[:, 2]
+    m = (mask[:, 0] > 0.5).float().expand_as(y)
+    return (y * m).sum((-1, -2)) / m.sum((-1, -2)).clamp_min(1)
+
+
+def exposure_gain(relit: torch.Tensor, photo: torch.Tensor, mask: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+    """(B,) the factor that makes each relit image's mean luminance on the mask k times the photo's
+    (``exposure: photo``; module docstring), within [1 / MAX_EXPOSURE_GAIN, MAX_EXPOSURE_GAIN]. ``relit``
+    (B, 3, H, W) is the relit image under lights of relative level k (B,), ``photo`` (1, 3, H, W) the input,
+    both at the processing size."""
+    target = k.float() * mean_luminance(photo.float(), mask)
+    gain = target / mean_luminance(relit.float(), mask).clamp_min(1e-12)
+    return gain.clamp(1 / MAX_EXPOSURE_GAIN, MAX_EXPOSURE_GAIN)

@@ -83,3 +83,25 @@ def test_missing_or_mismatched_model(tmp_path, tiny_models):
     (bad / "relight" / "config.json").write_text(json.dumps(cfg))
     with pytest.raises(PipelineError, match="relight"):
         PILightPipeline.from_pretrained(bad, device="cpu")
+
+
+def _mean_y(rgb: np.ndarray) -> float:
+    return float((rgb @ np.array([0.2126, 0.7152, 0.0722], np.float32)).mean())
+
+
+def test_exposure_photo_keeps_k_times_the_photos_mean_luminance(pipe, astronaut):
+    """exposure="photo" (the default): at k = 1 the relit image's mean luminance is the photo's, at k = 2 twice
+    it, each light scaled once so that k stays linear; exposure="light" multiplies by nothing."""
+    photo = astronaut.astype(np.float32) / 255  # linear already: the comparison needs no decoding
+    ls = [lights.named("left", 1.0), lights.named("right", 2.0)]
+    kept = pipe.relight(photo, ls)
+    raw = pipe.relight(photo, ls, exposure="light")
+    np.testing.assert_array_equal(raw.exposure_gain, [1.0, 1.0])
+    assert not np.allclose(kept.exposure_gain, 1.0)  # the tiny model does not keep it by itself
+    for i, k in enumerate((1.0, 2.0)):
+        # fitted at the processing size (32^2 here); the full-size detail transfer moves the mean by 1 %
+        assert _mean_y(kept.relit[i]) == pytest.approx(k * _mean_y(photo), rel=0.02)
+        np.testing.assert_allclose(kept.relit[i], raw.relit[i] * kept.exposure_gain[i], rtol=1e-4, atol=1e-6)
+        np.testing.assert_allclose(kept.diffuse[i], raw.diffuse[i] * kept.exposure_gain[i], rtol=1e-4, atol=1e-6)
+    with pytest.raises(PipelineError, match="exposure must be one of photo, light, got 'camera'"):
+        pipe.relight(photo, ls, exposure="camera")
