@@ -12,17 +12,15 @@ The one place a user's picture becomes the pipeline's linear HDR image (and back
   channel below 0.5 everywhere (nothing marked to process). Said, as a ``PhotoWarning``: negative
   values of a linear file, set to 0 (light is never negative).
 
-Pillow decodes 16-bit RGB PNG and TIFF to 8 bits. A non-interlaced 16-bit PNG is therefore decoded
-here (zlib and PNG's row filters in numpy), and so is an uncompressed 16-bit TIFF; other 16-bit
-RGB files fall back to Pillow's 8 bits with a warning that says so.
+Pillow decodes 16-bit RGB PNG and TIFF to 8 bits, and Radiance HDR not at all, so those go through
+OpenCV's decoders (the headless wheel; BGR order turned to RGB here); Pillow reads the rest and every
+file's EXIF orientation. ``probe`` reads a Radiance header itself, as it reads no pixels.
 """
 
 from __future__ import annotations
 
 import math
-import struct
 import warnings
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -168,7 +166,7 @@ def read_photo(path: str | Path) -> Photo:
             a = read_exr(path)
             return _from_channels(a, linear=True, name=str(path))
         if suffix == ".hdr":
-            return Photo(read_hdr(path), None, str(path))
+            return _from_channels(read_hdr(path), linear=True, name=str(path))
         return _read_pil(path)
     except PhotoError:
         raise
@@ -180,13 +178,7 @@ def _read_pil(path: Path) -> Photo:
     with _open_pil(path) as im:
         _check_frames(im, path)
         orientation = _orientation(im)
-        a = None
-        if im.format == "PNG":
-            a = _png16(path)
-        elif im.format == "TIFF":
-            a = _tiff16_raw(im, path)
-        if a is None:
-            a = _pil_array(im, path)
+        a = _opencv_array(path) if _sixteen_bit(im) else _pil_array(im, path)
     a = orient(a, orientation)
     if a.dtype == np.float32:  # float TIFF ('F'): linear values, as EXR
         return _from_channels(a, linear=True, name=str(path))
@@ -295,121 +287,28 @@ def as_photo(image, name: str = "<array>") -> Photo:
     raise PhotoError(f"{name}: array dtype {a.dtype}; want uint8 / uint16 (sRGB) or float (linear)")
 
 
-# --- 16-bit PNG and TIFF ------------------------------------------------------------------------
-_PNG_SIG = b"\x89PNG\r\n\x1a\n"
-_PNG_CHANNELS = {0: 1, 2: 3, 4: 2, 6: 4}  # colour type -> channels
+# --- 16-bit PNG and TIFF, Radiance HDR: OpenCV ----------------------------------------------------
+def _sixteen_bit(im) -> bool:
+    """A PNG or TIFF stored at 16 bits per channel (Pillow would give 8 bits of its RGB)."""
+    if im.format == "PNG":
+        with open(im.filename, "rb") as f:
+            return f.read(25)[24:25] == b"\x10"  # IHDR's bit depth, right after the signature and width/height
+    if im.format == "TIFF":
+        bits = im.tag_v2.get(258, (8,))  # BitsPerSample
+        return 16 in (bits if isinstance(bits, tuple) else (bits,))
+    return False
 
 
-def _png16(path: Path) -> np.ndarray | None:
-    """A 16-bit non-interlaced PNG -> (H, W, C) uint16; None for any other PNG (Pillow reads those)."""
-    data = path.read_bytes()
-    if not data.startswith(_PNG_SIG):
-        return None
-    pos, idat, ihdr = 8, [], None
-    while pos + 8 <= len(data):
-        length, kind = struct.unpack(">I4s", data[pos : pos + 8])
-        body = data[pos + 8 : pos + 8 + length]
-        if kind == b"IHDR":
-            ihdr = struct.unpack(">IIBBBBB", body)
-            if ihdr[2] != 16 or ihdr[3] not in _PNG_CHANNELS:
-                return None
-            if ihdr[6] != 0:
-                warnings.warn(
-                    f"{path}: interlaced 16-bit PNG is read at 8 bits per channel (Pillow); "
-                    "save it without interlacing to keep 16 bits",
-                    stacklevel=3,
-                )
-                return None
-        elif kind == b"IDAT":
-            idat.append(body)
-        elif kind == b"IEND":
-            break
-        pos += 12 + length
-    if ihdr is None or not idat:
-        raise PhotoError(f"{path}: PNG without IHDR or image data")
-    w, h, _, ctype = ihdr[:4]
-    c = _PNG_CHANNELS[ctype]
-    try:
-        raw = zlib.decompress(b"".join(idat))
-    except zlib.error as exc:
-        raise PhotoError(f"{path}: corrupt PNG image data ({exc})") from None
-    stride = w * c * 2
-    if len(raw) < h * (stride + 1):
-        raise PhotoError(f"{path}: truncated PNG image data ({len(raw)} of {h * (stride + 1)} bytes)")
-    rows = np.frombuffer(raw, np.uint8, h * (stride + 1)).reshape(h, stride + 1)
-    out = _png_unfilter(rows[:, 0], rows[:, 1:], bpp=c * 2, path=path)
-    return out.view(">u2").reshape(h, w, c).astype(np.uint16)
+def _opencv_array(path: Path) -> np.ndarray:
+    """A file OpenCV decodes as stored (16-bit integers, Radiance floats) -> (H, W, C) in RGB(A) order."""
+    import cv2
 
-
-def _png_unfilter(ftype: np.ndarray, rows: np.ndarray, bpp: int, path: Path) -> np.ndarray:
-    """PNG's per-row filters undone. None, Sub and Up are vectorised; Average and Paeth depend on
-    the byte to their left, so they run per pixel (a few seconds for a 12-megapixel Paeth image)."""
-    h, stride = rows.shape
-    out = np.zeros((h, stride), np.uint8)
-    prev = np.zeros(stride, np.int64)
-    for y in range(h):
-        f, cur = int(ftype[y]), rows[y].astype(np.int64)
-        if f == 0:
-            r = cur
-        elif f == 1:
-            r = np.cumsum(cur.reshape(-1, bpp), axis=0).reshape(-1) % 256
-        elif f == 2:
-            r = (cur + prev) % 256
-        elif f in (3, 4):
-            r = _png_sequential(f, cur.tolist(), prev.tolist(), bpp)
-        else:
-            raise PhotoError(f"{path}: corrupt PNG (row {y} has filter type {f})")
-        out[y] = r
-        prev = np.asarray(r, np.int64)
-    return out
-
-
-def _png_sequential(f: int, cur: list[int], up: list[int], bpp: int) -> np.ndarray:
-    r = [0] * len(cur)
-    for i, x in enumerate(cur):
-        a = r[i - bpp] if i >= bpp else 0
-        b = up[i]
-        if f == 3:
-            r[i] = (x + ((a + b) >> 1)) & 255
-        else:
-            c = up[i - bpp] if i >= bpp else 0
-            p = a + b - c
-            pa, pb, pc = abs(p - a), abs(p - b), abs(p - c)
-            r[i] = (x + (a if pa <= pb and pa <= pc else b if pb <= pc else c)) & 255
-    return np.asarray(r, np.int64)
-
-
-def _tiff16_raw(im, path: Path) -> np.ndarray | None:
-    """An uncompressed 16-bit RGB(A) TIFF -> (H, W, C) uint16, from the strips Pillow located.
-    None when Pillow reads the file at full depth itself; a warning when it can only read 8 bits."""
-    if im.mode not in ("RGB", "RGBA") or not im.tile:
-        return None
-    args = im.tile[0][3]
-    rawmode = args[0] if isinstance(args, tuple) and args else args
-    if ";16" not in str(rawmode):
-        return None
-    codec = im.tile[0][0]
-    c = 4 if str(rawmode).startswith("RGBA") else 3
-    if codec != "raw" or any(t[0] != "raw" for t in im.tile):
-        warnings.warn(
-            f"{path}: compressed 16-bit TIFF is read at 8 bits per channel (Pillow); save it "
-            "uncompressed or as a 16-bit PNG to keep 16 bits",
-            stacklevel=3,
-        )
-        return None
-    dtype = ">u2" if str(rawmode).endswith("B") else "<u2"
-    w, h = im.size
-    out = np.zeros((h, w, c), np.uint16)
-    with open(path, "rb") as f:
-        for t in im.tile:
-            x0, y0, x1, y1 = t[1]
-            f.seek(t[2])
-            n = (x1 - x0) * (y1 - y0) * c
-            buf = np.frombuffer(f.read(n * 2), dtype)
-            if buf.size != n:
-                raise PhotoError(f"{path}: truncated TIFF strip at byte {t[2]}")
-            out[y0:y1, x0:x1] = buf.reshape(y1 - y0, x1 - x0, c)
-    return out
+    a = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)  # as stored: no EXIF turn, no 8-bit conversion
+    if a is None:
+        raise PhotoError(f"{path}: OpenCV cannot decode it (a truncated or unsupported file)")
+    if a.ndim == 2:
+        return a[..., None]
+    return np.ascontiguousarray(a[..., [2, 1, 0, 3][: a.shape[2]]] if a.shape[2] in (3, 4) else a)
 
 
 # --- Radiance HDR ---------------------------------------------------------------------------------
@@ -440,41 +339,11 @@ def _hdr_header(f, path: Path) -> tuple[int, int, bool]:
 
 
 def read_hdr(path: str | Path) -> np.ndarray:
-    """Radiance RGBE (.hdr) -> (H, W, 3) float32 linear radiance."""
+    """Radiance RGBE (.hdr) -> (H, W, 3) float32 linear radiance (the header checked first)."""
     path = Path(path)
     with open(path, "rb") as f:
-        h, w, flip = _hdr_header(f, path)
-        data = f.read()
-    rgbe = np.zeros((h, w, 4), np.uint8)
-    pos = 0
-    for y in range(h):
-        if 8 <= w < 32768 and data[pos : pos + 2] == b"\x02\x02" and (data[pos + 2] << 8 | data[pos + 3]) == w:
-            pos += 4
-            for ch in range(4):  # new-style RLE: each channel of the scanline on its own
-                x = 0
-                while x < w:
-                    if pos >= len(data):
-                        raise PhotoError(f"{path}: truncated Radiance pixel data at row {y}")
-                    n = data[pos]
-                    pos += 1
-                    if n > 128:
-                        n -= 128
-                        rgbe[y, x : x + n, ch] = data[pos]
-                        pos += 1
-                    else:
-                        rgbe[y, x : x + n, ch] = np.frombuffer(data, np.uint8, n, pos)
-                        pos += n
-                    x += n
-        else:  # flat scanline
-            n = w * 4
-            if pos + n > len(data):
-                raise PhotoError(f"{path}: truncated Radiance pixel data at row {y}")
-            rgbe[y] = np.frombuffer(data, np.uint8, n, pos).reshape(w, 4)
-            pos += n
-    e = rgbe[..., 3].astype(np.int32)
-    scale = np.where(e > 0, np.ldexp(1.0, e - 136), 0.0).astype(np.float32)  # 2^(e - 128) / 256
-    out = rgbe[..., :3].astype(np.float32) * scale[..., None]
-    return np.ascontiguousarray(out[:, ::-1] if flip else out)
+        _hdr_header(f, path)
+    return _opencv_array(path).astype(np.float32)
 
 
 # --- sizes ----------------------------------------------------------------------------------------

@@ -63,11 +63,16 @@ def test_16bit_png_keeps_16_bits(tmp_path, channels):
         assert photo.mask is None
 
 
-def test_16bit_uncompressed_tiff_keeps_16_bits(tmp_path):
+@pytest.mark.parametrize("compression, channels", [(None, 3), ("zlib", 3), ("zlib", 4)])
+def test_16bit_tiff_keeps_16_bits(tmp_path, compression, channels):
     tifffile = pytest.importorskip("tifffile")  # installed with scikit-image (the test extra)
-    a = np.random.default_rng(0).integers(0, 65536, (9, 7, 3)).astype(np.uint16)
-    tifffile.imwrite(tmp_path / "x.tif", a, photometric="rgb")
-    np.testing.assert_allclose(read_photo(tmp_path / "x.tif").rgb, srgb_to_linear(a / 65535.0), rtol=1e-6, atol=1e-7)
+    a = np.random.default_rng(0).integers(0, 65536, (9, 7, channels)).astype(np.uint16)
+    extra = {"extrasamples": ["unassalpha"]} if channels == 4 else {}
+    tifffile.imwrite(tmp_path / "x.tif", a, photometric="rgb", compression=compression, **extra)
+    photo = read_photo(tmp_path / "x.tif")
+    np.testing.assert_allclose(photo.rgb, srgb_to_linear(a[..., :3] / 65535.0), rtol=1e-6, atol=1e-7)
+    if channels == 4:
+        np.testing.assert_array_equal(photo.mask, (a[..., 3] / 65535.0 >= 0.5).astype(np.float32))
 
 
 def test_exif_orientation_is_honoured(tmp_path, astronaut):
@@ -99,13 +104,19 @@ def test_exr_is_linear_and_hdr_is_read(tmp_path):
     a = np.random.default_rng(1).uniform(0, 8, (6, 12, 3)).astype(np.float32)
     write_exr(tmp_path / "x.exr", a, half=False)
     np.testing.assert_array_equal(read_photo(tmp_path / "x.exr").rgb, a)
-    # Radiance RGBE, one flat and one run-length-encoded scanline.
-    w = 12
-    flat = np.zeros((w, 4), np.uint8)
-    flat[:, :3], flat[:, 3] = 128, 129  # 128/256 * 2^(129-128) = 1.0
-    rle = b"\x02\x02\x00\x0c" + b"".join(bytes([128 + w, v]) for v in (64, 64, 64, 130))  # 64/256 * 4 = 1.0
-    (tmp_path / "x.hdr").write_bytes(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 2 +X 12\n" + flat.tobytes() + rle)
-    np.testing.assert_allclose(read_hdr(tmp_path / "x.hdr"), np.ones((2, w, 3)), rtol=0)
+    # Radiance RGBE (OpenCV decodes it), flat and run-length encoded scanlines, channels told apart:
+    # 128/256 * 2^(129-128) = 1.0, 64 -> 0.5, 32 -> 0.25
+    w, rgb = 12, np.array([1.0, 0.5, 0.25], np.float32)
+    header = b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 2 +X 12\n"
+    (tmp_path / "flat.hdr").write_bytes(header + bytes([128, 64, 32, 129]) * (2 * w))
+    rle_row = b"\x02\x02\x00\x0c" + b"".join(bytes([128 + w, v]) for v in (128, 64, 32, 129))
+    (tmp_path / "x.hdr").write_bytes(header + rle_row * 2)
+    for name in ("flat.hdr", "x.hdr"):
+        np.testing.assert_allclose(read_hdr(tmp_path / name), np.broadcast_to(rgb, (2, w, 3)), rtol=0)
+        np.testing.assert_allclose(read_photo(tmp_path / name).rgb, np.broadcast_to(rgb, (2, w, 3)), rtol=0)
+    (tmp_path / "cut.hdr").write_bytes(header + rle_row)  # one row of two
+    with pytest.raises(PhotoError, match="cut.hdr: OpenCV cannot decode it"):
+        read_photo(tmp_path / "cut.hdr")
     assert probe(tmp_path / "x.hdr") == (2, 12)
 
 
