@@ -25,7 +25,7 @@ import torch
 from pilight.params import BaseParams, RenderParams
 from pilight.physics.envmap import ball_normals, ball_to_envmap
 from pilight.physics.shading import diffuse_shading
-from pilight.render import dataset, passes, scene
+from pilight.render import passes, scene, views
 from pilight.render.spec import scene_spec
 
 REFERENCE = (64, 1024, 0)
@@ -48,7 +48,7 @@ def render_ball(handles: dict, config: tuple[int, int, int], threshold: float, t
     c.use_adaptive_sampling = config != REFERENCE and threshold > 0
     c.adaptive_threshold = threshold
     t0 = time.perf_counter()
-    ball = passes.ball_maps(dataset._render(ball_scene, tmp), lambertian=False)["ball"]
+    ball = passes.ball_maps(views.render_passes(ball_scene, tmp), lambertian=False)["ball"]
     return ball, time.perf_counter() - t0
 
 
@@ -74,7 +74,7 @@ def main() -> None:
     seconds: dict[tuple, list[float]] = {}
     for index in range(a.scenes):
         spec = scene_spec(p, BaseParams().seed, "train", index)
-        handles = scene.build(spec, p, dataset.bundled_hdri_dir())
+        handles = scene.build(spec, p, views.bundled_hdri_dir())
         passes.configure_ball(handles["ball_scene"].view_layers[0], lambertian=False)
         for v, view in enumerate(spec["views"]):
             scene.set_view(handles, view)

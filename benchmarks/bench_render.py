@@ -29,19 +29,19 @@ sys.path.insert(0, str(ROOT))
 
 def child(kind: str, mode: str, resolution: int, views: int, lights: int, repeats: int) -> dict:
     from pilight.params import BaseParams, RenderParams
-    from pilight.render import dataset, passes, scene
+    from pilight.render import passes, scene, views
     from pilight.render.spec import scene_spec
 
     p = RenderParams(resolution=resolution, views_per_scene=views, lights_per_view=lights)
     spec = next(s for i in range(100) if (s := scene_spec(p, BaseParams().seed, "train", i))["kind"] == kind)
-    handles = scene.build(spec, p, dataset.bundled_hdri_dir())
+    handles = scene.build(spec, p, views.bundled_hdri_dir())
     out = Path(tempfile.mkdtemp(prefix="bench_render_"))
     per_bundle = []
     for _ in range(repeats):  # every pass renders all views x lights again; the median is reported
         t0, n = time.perf_counter(), 0
         for v in range(views):
             if mode == "bundle":
-                dataset.render_view(handles, spec, v, out, out, lambertian=True)
+                views.render_view(handles, spec, v, out, out, lambertian=True)
                 n += lights
             else:
                 scene.set_view(handles, spec["views"][v])
@@ -49,7 +49,7 @@ def child(kind: str, mode: str, resolution: int, views: int, lights: int, repeat
                     scene.set_lights(light)
                     scene.set_world(handles["world"], light)
                     passes.configure(handles["scene"].view_layers[0], diffuse=False, view_maps=False)
-                    dataset._render(handles["scene"], out)
+                    views.render_passes(handles["scene"], out)
                     n += 1
         per_bundle.append((time.perf_counter() - t0) / n)
     return {

@@ -3,7 +3,7 @@
     python benchmarks/blender_proof.py [--resolution 128] [--ball-resolution 128] [--samples 512]
                                        [--ball-samples 512] [--world-map 1024] [--erode 2]
 
-Scenes are built and rendered by the render stage (``scene.build`` + ``dataset.render_view``):
+Scenes are built and rendered by the render stage (``scene.build`` + ``views.render_view``):
 one object (sphere; Suzanne facing the camera), Principled base 0.8 / roughness 0.5 /
 metallic 0, no backdrop, camera at 5 m (50 mm).  Lights (each + ambient 0.02):
 HDRI ``forest`` (strength 1, rotated 30 deg), HDRI ``sunset`` (strength 1, not rotated), and
@@ -98,19 +98,19 @@ def metrics(calc: np.ndarray, ref: np.ndarray, inner: np.ndarray) -> dict:
 
 
 def render(shape: str, lights: dict, params: RenderParams, erode_px: int, cast_shadows: bool = True) -> list[dict]:
-    from pilight.render import dataset, scene
+    from pilight.render import scene, views
 
     names = list(lights)
     spec = one_object_spec(shape, [lights[n] for n in names], SID)
     with tempfile.TemporaryDirectory(prefix="blender_proof_") as d:
         root = Path(d)
         (root / ".tmp").mkdir()
-        handles = scene.build(spec, params, dataset.bundled_hdri_dir())
+        handles = scene.build(spec, params, views.bundled_hdri_dir())
         if not cast_shadows:  # diagnostic: the object casts no shadow (on itself), D_calc's own assumption
             for obj in handles["scene"].objects:
                 if obj.name.startswith("obj_"):
                     obj.visible_shadow = False
-        raw = dataset.render_view(handles, spec, 0, root, root / ".tmp", lambertian=True, verify=True)
+        raw = views.render_view(handles, spec, 0, root, root / ".tmp", lambertian=True, verify=True)
         normal = read_exr(layout.map_path(root, SID, 0, "normal"))
         inner = erode(read_exr(layout.map_path(root, SID, 0, "mask"))[..., 0] > 0.5, erode_px)
         rows = []

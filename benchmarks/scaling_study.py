@@ -32,7 +32,7 @@ from pilight.params import IntrinsicsParams, load_section, read_params  # noqa: 
 
 def finished_manifest(renders: Path) -> dict:
     """The manifest of a render folder, or, while it is still rendering, of its finished scenes (a scene's
-    scene.json is written after all its views, pilight.render.dataset)."""
+    scene.json is written after all its views, pilight.render.views)."""
     if (renders / "manifest.json").is_file():
         return json.loads((renders / "manifest.json").read_text())
     from pilight.render.dataset import manifest_entry

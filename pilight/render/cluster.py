@@ -9,7 +9,7 @@ through Dask's own tools (dask-jobqueue, dask-kubernetes).
 The scenes are cut into partitions of `render.cluster.scenes_per_task` scenes, in the order of
 `pilight.render.dataset.all_specs`. One partition is one task. A worker process imports bpy once,
 with its first task, and keeps it for every later one. The work inside a partition is the in-process
-render (`dataset.render_scene`), with the same per-view stamps, so the bytes do not depend on the
+render (`views.render_scene`), with the same per-view stamps, so the bytes do not depend on the
 executor, on which worker rendered what, or on how often a task was retried. A partition is complete
 when its marker `<root>/.partitions/<first>--<last>.done` holds the hash of its views' stamps. A
 rerun submits only the partitions without such a marker, and inside them renders only the views
@@ -55,7 +55,7 @@ def _marker(root: Path, part: list[dict]) -> Path:
 
 
 def _stamp(part: list[dict], p) -> str:
-    from pilight.render.dataset import view_stamp
+    from pilight.render.views import view_stamp
 
     views = [view_stamp(spec, v, p) for spec in part for v in range(len(spec["views"]))]
     return hashlib.sha256("\n".join(views).encode()).hexdigest()
@@ -70,7 +70,7 @@ def render_partition(part: list[dict], params_json: dict, root: str, hdri_dir: s
     """One task, run inside a worker process: render the partition's scenes, then write its marker."""
     _blender_paths_out()
     from pilight.params import RenderParams
-    from pilight.render import dataset  # imports bpy, once per worker process
+    from pilight.render import views  # imports bpy, once per worker process
     from pilight.render.blender_log import blender_output_to
     from pilight.render.scene import RenderError
 
@@ -78,11 +78,11 @@ def render_partition(part: list[dict], params_json: dict, root: str, hdri_dir: s
     root_path, t0 = Path(root), time.perf_counter()
     bundles, failure = 0, None
     with blender_output_to(Path(log) if log else None):
-        tmp = Path(tempfile.mkdtemp(prefix=dataset.TMP_PREFIX, dir=root_path))
+        tmp = Path(tempfile.mkdtemp(prefix=views.TMP_PREFIX, dir=root_path))
         try:
             for spec in part:
                 try:
-                    bundles += dataset.render_scene(spec, p, root_path, Path(hdri_dir), tmp)
+                    bundles += views.render_scene(spec, p, root_path, Path(hdri_dir), tmp)
                 except Exception as exc:  # noqa: BLE001 - named, then raised below as a plain message
                     failure = f"scene {spec['id']}: {type(exc).__name__}: {exc}"
                     break
@@ -102,7 +102,7 @@ def render_on_dask(
     specs: list[dict], p, root: Path, hdri_dir: Path, on_bundles: Callable[[int], object], blender_log: Path | None
 ) -> list[dict]:
     """Submit every incomplete partition, wait for all of them; RenderError naming the failed scenes."""
-    from pilight.render import dataset
+    from pilight.render import views
     from pilight.render.scene import RenderError
 
     try:
@@ -116,7 +116,7 @@ def render_on_dask(
     todo = []
     for part in parts:
         if partition_is_complete(root, part, p):
-            on_bundles(dataset.bundles_of(part))
+            on_bundles(views.bundles_of(part))
         else:
             todo.append(part)
     if not todo:
@@ -152,7 +152,7 @@ def render_on_dask(
             except Exception as exc:  # noqa: BLE001 - collected: the other partitions still finish
                 failed.append(f"{part[0]['id']}..{part[-1]['id']}: {exc}")
                 continue
-            on_bundles(dataset.bundles_of(part))
+            on_bundles(views.bundles_of(part))
     finally:
         client.close()
         if cluster is not None:

@@ -18,7 +18,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from pilight.params import BaseParams, RenderParams, TradeParams
-from pilight.render import dataset, passes, scene
+from pilight.render import passes, scene, views
 from pilight.render.blender_log import blender_output_to
 from pilight.render.spec import scene_spec
 
@@ -48,7 +48,7 @@ def render_spp_sweep(p: RenderParams, base: BaseParams, tp: TradeParams, blender
         tqdm(total=len(specs) * len(points), desc="render_trade", unit="render", file=terminal) as bar,
     ):
         for spec in specs:
-            handles = scene.build(spec, p, dataset.bundled_hdri_dir())
+            handles = scene.build(spec, p, views.bundled_hdri_dir())
             scn = handles["scene"]
             scene.set_view(handles, spec["views"][0])
             light = spec["lights"][0][0]
@@ -59,7 +59,7 @@ def render_spp_sweep(p: RenderParams, base: BaseParams, tp: TradeParams, blender
                 c = scn.cycles
                 c.samples, c.use_adaptive_sampling, c.adaptive_threshold, c.seed = spp, threshold > 0, threshold, seed
                 t0 = time.perf_counter()
-                image = dataset.render_passes(scn, Path(tmp))["Combined"]
+                image = views.render_passes(scn, Path(tmp))["Combined"]
                 bar.update(1)
                 out.append(
                     {

@@ -1,6 +1,6 @@
 """Proof against Blender: D_calculated from the rendered light ball matches Cycles' diffuse shading.
 
-Scene rendered by the render stage (``scene.build`` + ``dataset.render_view``): a lone
+Scene rendered by the render stage (``scene.build`` + ``views.render_view``): a lone
 Principled sphere (base 0.8, roughness 0.5, metallic 0: the diffuse lobe exists), no backdrop,
 camera at 5 m.  Two light conditions:
 
@@ -79,14 +79,14 @@ def _params() -> RenderParams:
 @pytest.fixture(scope="module")
 def rendered(tmp_path_factory):
     pytest.importorskip("bpy")
-    from pilight.render import dataset, scene
+    from pilight.render import scene, views
 
     root: Path = tmp_path_factory.mktemp("blender_proof")
     spec = one_object_spec("sphere", [LIGHTS[n] for n in NAMES], SID)
-    handles = scene.build(spec, _params(), dataset.bundled_hdri_dir())
+    handles = scene.build(spec, _params(), views.bundled_hdri_dir())
     tmp = root / ".tmp"
     tmp.mkdir()
-    raw = dataset.render_view(handles, spec, 0, root, tmp, lambertian=True, verify=True)
+    raw = views.render_view(handles, spec, 0, root, tmp, lambertian=True, verify=True)
     normal = read_exr(layout.map_path(root, SID, 0, "normal"))
     mask = read_exr(layout.map_path(root, SID, 0, "mask"))[..., 0] > 0.5
     balls = {

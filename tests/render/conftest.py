@@ -68,14 +68,14 @@ def sphere(material, location=(0.0, 0.0, 0.0), scale=1.0) -> dict:
 def bpy_render():
     """Render a controlled spec into a folder; returns (root, raw passes per light)."""
     pytest.importorskip("bpy")
-    from pilight.render import dataset, scene
+    from pilight.render import scene, views
 
     def run(spec: dict, root: Path, params: RenderParams | None = None, verify: bool = True, lambertian: bool = True):
         p = params or tiny_params()
-        handles = scene.build(spec, p, dataset.bundled_hdri_dir())
+        handles = scene.build(spec, p, views.bundled_hdri_dir())
         tmp = root / ".tmp"
         tmp.mkdir(parents=True, exist_ok=True)
-        raw = dataset.render_view(handles, spec, 0, root, tmp, lambertian=lambertian, verify=verify)
+        raw = views.render_view(handles, spec, 0, root, tmp, lambertian=lambertian, verify=verify)
         return raw, handles
 
     return run
