@@ -62,7 +62,12 @@ def _model(spec, latent_ch, cond_ch, cross_batch, device):
     torch.manual_seed(0)
     unet = build_unet(spec, latent_ch + cond_ch, latent_ch, DOMAINS)
     return DomainDiffusion(
-        unet, LearnedEmbedding(spec.cross_attention_dim), DOMAINS, cond_ch, num_views=DOMAINS, cross_batch=cross_batch
+        unet,
+        LearnedEmbedding(spec.cross_attention_dim),
+        DOMAINS,
+        cond_ch,
+        items_per_sample=DOMAINS,
+        cross_batch=cross_batch,
     ).to(device)
 
 
@@ -86,7 +91,7 @@ def bench_sampling(model, codec, size, latent_ch, mode, steps, device, amp, repe
                 cond,
                 ids,
                 ehs,
-                num_views=DOMAINS,
+                items_per_sample=DOMAINS,
                 steps=steps,
                 mode=mode,
                 generator=torch.Generator(device).manual_seed(1),

@@ -56,10 +56,11 @@ from pilight.diffusion.codec import cell_mean, cell_smooth
 from pilight.eval.light_following import ChangeR2
 from pilight.eval.metrics import psnr_per_image, ssim_per_image
 from pilight.eval.scale_invariant import scaled_to
+from pilight.params import DOMAINS
 from pilight.physics.calculated import diffuse_calculated, specular_calculated
 from pilight.physics.source_light import estimate_source_ball
 from pilight.physics.specular_model import specular_from_ball
-from pilight.relight.conditions import PRED_DOMAINS, choose_intrinsics, optional_predictions
+from pilight.relight.conditions import choose_intrinsics, optional_predictions
 from pilight.relight.encoding import gain_decode, gain_encode
 from pilight.relight.physics_first import anchors, compose_relit, diffuse_target, gain_of
 
@@ -196,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
     # name -> (predictions or None for ground truth, conditions()'s options)
     settings = {"gt": (None, {})} | ({"pred": (preds, {})} if preds is not None else {})
     if args.per_map:
-        settings |= {f"pred {d}": (preds, {"only": d}) for d in PRED_DOMAINS}
+        settings |= {f"pred {d}": (preds, {"only": d}) for d in DOMAINS}
         settings["pred, albedo at GT level"] = (preds, {"at_gt_level": True})
         settings["pred albedo at GT level"] = (preds, {"only": "albedo", "at_gt_level": True})
     scores: dict[str, dict[str, dict]] = {s: {} for s in settings}

@@ -74,7 +74,8 @@ def mismatches(stage: str, wanted: dict, saved: dict) -> list[str]:
 def init_from_base(stack, p, stage: str) -> Path:
     """Load the base's weights of ``stage`` into ``stack`` (built from params ``p``); returns the folder.
     BaseModelError when the folder is missing or the params build another network."""
-    from pilight.train.build import ModelError, load_model
+    from pilight.models.folder import load_model
+    from pilight.models.stack import ModelError
 
     folder = base_folder(stage, p.unet.path)
     cfg = folder / "config.json"

@@ -50,15 +50,11 @@ import warnings
 from contextlib import contextmanager
 from pathlib import Path
 
-DECOMPOSE_MAPS = ("albedo", "normal", "roughness", "metallic")
+from pilight.failure import CommandFailure
+from pilight.params import DOMAINS
+
 RELIGHT_MAPS = ("relit", "diffuse", "specular")
 CONTACT_HEIGHT = 512  # contact sheets are at most this tall, so a 24-megapixel photo gives a viewable PNG
-
-
-class CliError(Exception):
-    def __init__(self, message: str, code: int = 1):
-        super().__init__(message)
-        self.code = code
 
 
 # --- arguments ---------------------------------------------------------------------------------
@@ -249,12 +245,12 @@ def expand_inputs(items: list[str]) -> list[Path]:
         if p.is_dir():
             found = sorted(f for f in p.iterdir() if f.is_file() and f.suffix.lower() in PHOTO_SUFFIXES)
             if not found:
-                raise CliError(f"{p}: folder holds no photos ({', '.join(PHOTO_SUFFIXES)})")
+                raise CommandFailure(f"{p}: folder holds no photos ({', '.join(PHOTO_SUFFIXES)})")
             out += found
         elif not p.exists() and glob.has_magic(item):
             found = sorted(Path(f) for f in glob.glob(item) if Path(f).is_file())
             if not found:
-                raise CliError(f"{item}: no file matches")
+                raise CommandFailure(f"{item}: no file matches")
             out += found
         else:
             out.append(p)  # missing or unreadable files are reported by the header check, with the others
@@ -275,7 +271,7 @@ def output_names(photos: list[Path]) -> dict[Path, str]:
     clash = {n: ps for n, ps in by_name.items() if len(ps) > 1}
     if clash:
         n, ps = next(iter(clash.items()))
-        raise CliError(
+        raise CommandFailure(
             f"{', '.join(map(str, ps))}: these photos would all write OUT/{n}/; rename one, or run them "
             "with different -o folders"
         )
@@ -297,7 +293,7 @@ def check_writable(out: Path) -> None:
         os.close(fd)
         os.unlink(tmp)
     except OSError as exc:
-        raise CliError(f"{out}: cannot write outputs there ({exc.strerror or exc})") from None
+        raise CommandFailure(f"{out}: cannot write outputs there ({exc.strerror or exc})") from None
 
 
 # Temporaries of this process: .<final name>.tmp-<host>-<pid>-<random> (and .old- for a folder being
@@ -410,7 +406,7 @@ def _complete(paths) -> bool:
 
 
 def decompose_files(folder: Path) -> list[Path]:
-    return [folder / f"{m}.{ext}" for m in DECOMPOSE_MAPS for ext in ("exr", "png")]
+    return [folder / f"{m}.{ext}" for m in DOMAINS for ext in ("exr", "png")]
 
 
 def relight_files(folder: Path, branches) -> list[Path]:
@@ -472,7 +468,7 @@ def check_model_options(args) -> None:
     from pilight.pipeline import MAX_PROCESSING_RESOLUTION
 
     if args.resolution is not None and not 0 <= args.resolution <= MAX_PROCESSING_RESOLUTION:
-        raise CliError(
+        raise CommandFailure(
             f"--resolution must lie in [0, {MAX_PROCESSING_RESOLUTION}] (0 = the photo's own size), got {args.resolution}",
             2,
         )
@@ -486,9 +482,9 @@ def check_model_options(args) -> None:
         try:
             SamplingParams.model_validate({key: v})
         except ValidationError as exc:
-            raise CliError(f"{flag} {v}: {exc.errors()[0]['msg']}", 2) from None
+            raise CommandFailure(f"{flag} {v}: {exc.errors()[0]['msg']}", 2) from None
     if args.max_memory is not None and not (math.isfinite(args.max_memory) and args.max_memory > 0):
-        raise CliError(f"--max-memory must be a finite number of GiB > 0, got {args.max_memory}", 2)
+        raise CommandFailure(f"--max-memory must be a finite number of GiB > 0, got {args.max_memory}", 2)
 
 
 def _pipeline(args, stage: str, state=None):
@@ -511,9 +507,9 @@ def _pipeline(args, stage: str, state=None):
                 args.models, device=device, params=args.params, trust_unverified=args.trust_unverified
             )
     except ParamsError as exc:
-        raise CliError(str(exc), 2) from None
+        raise CommandFailure(str(exc), 2) from None
     except PipelineError as exc:
-        raise CliError(str(exc)) from None
+        raise CommandFailure(str(exc)) from None
     # Only the checkout's own models/ are expected to match its params.yaml; another folder is
     # the user's choice and is used as its config.json says.
     print(f"pilight: models: {args.models.resolve()}", file=sys.stderr)
@@ -565,7 +561,9 @@ def _check_photos(pipe, photos: list[Path], lights: int, max_memory_gib: float |
         except (PhotoError, MemoryLimitError) as exc:
             errors.append(str(exc))
     if errors:
-        raise CliError("\n".join(errors) + f"\nnothing was written ({len(errors)} of {len(photos)} photo(s) refused)")
+        raise CommandFailure(
+            "\n".join(errors) + f"\nnothing was written ({len(errors)} of {len(photos)} photo(s) refused)"
+        )
 
 
 def _progress(total: int, desc: str, state=None):
@@ -641,7 +639,7 @@ def cmd_decompose(args) -> int:
             try:
                 write_into(folder, files) if folder.is_dir() else write_folder(folder, files)
             except (OSError, ValueError) as exc:  # ExrError is a ValueError (a full disk inside OpenEXR)
-                raise CliError(
+                raise CommandFailure(
                     f"{folder}: cannot write the decomposition ({getattr(exc, 'strerror', None) or exc}); nothing of "
                     f"it was kept. {done - failed} photo(s) before it are complete; rerun to continue"
                 ) from None
@@ -687,7 +685,7 @@ def _lights(args, size: int):
                 args.light, args.azimuth, args.elevation, args.ball, args.hdri, args.rotate, args.intensity, size
             )
     except LightError as exc:
-        raise CliError(str(exc), 2) from None
+        raise CommandFailure(str(exc), 2) from None
 
 
 def cmd_relight(args) -> int:
@@ -702,7 +700,7 @@ def cmd_relight(args) -> int:
     state = _launched_processes()
     pipe = _pipeline(args, "relight", state)
     _check_photos(pipe, photos, len(lights), args.max_memory)
-    branches = pipe.relight_task.branches
+    branches = pipe.relight_model.branches
     mine = _my_share(photos, state)
     _sweep(args.out, [args.out / names[p] for p in mine])
     pending = {
@@ -745,7 +743,7 @@ def cmd_relight(args) -> int:
                     write_folder(folder, files)
                 except (OSError, ValueError) as exc:  # ExrError is a ValueError (a full disk inside OpenEXR)
                     kept = f"; its light(s) {', '.join(complete)} are complete" if complete else ""
-                    raise CliError(
+                    raise CommandFailure(
                         f"{folder}: cannot write this light's outputs ({getattr(exc, 'strerror', None) or exc}); "
                         f"nothing of this light was kept{kept}. {done - failed} photo(s) before it are complete; "
                         "rerun to continue"
@@ -762,7 +760,7 @@ def cmd_ball(args) -> int:
     from pilight.lights import ball_preview
 
     if not 8 <= args.size <= 8192:
-        raise CliError(f"--size must lie in [8, 8192] pixels, got {args.size}", 2)
+        raise CommandFailure(f"--size must lie in [8, 8192] pixels, got {args.size}", 2)
     lights = _lights(args, args.size)
     check_writable(args.out)
     for done, light in enumerate(lights):
@@ -774,7 +772,7 @@ def cmd_ball(args) -> int:
                 }
             )
         except (OSError, ValueError) as exc:
-            raise CliError(
+            raise CommandFailure(
                 f"{args.out / light.name}: cannot write the ball ({getattr(exc, 'strerror', None) or exc}); nothing "
                 f"of it was kept, {done} ball(s) before it are complete"
             ) from None
@@ -789,7 +787,7 @@ def cmd_profile(args) -> int:
     try:
         raw = write_profile(args.base, args.profile, args.out, check_paths=not args.no_check_paths)
     except ParamsError as exc:
-        raise CliError(str(exc), code=2) from None
+        raise CommandFailure(str(exc), code=2) from None
     print(f"{args.out}: {args.base} with {args.profile} over it ({len(raw)} sections, validated)")
     return 0
 
@@ -800,7 +798,7 @@ def main(argv: list[str] | None = None) -> int:
         return {"decompose": cmd_decompose, "relight": cmd_relight, "ball": cmd_ball, "profile": cmd_profile}[
             args.command
         ](args)
-    except CliError as exc:
+    except CommandFailure as exc:
         print(f"pilight {args.command}: {exc}", file=sys.stderr)
         return exc.code
     except KeyboardInterrupt:

@@ -20,10 +20,14 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine() or "unknown CPU"
 
 
+def cpu_has_native_bf16() -> bool:
+    """Whether oneDNN has native bf16 kernels on this CPU (AVX512-BF16 or AMX). Without them CPU
+    autocast still computes in bf16, but by emulation, and a step is slower than in fp32."""
+    return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
+
+
 def describe() -> dict[str, object]:
     """{"device", "cpu", "cores", "threads", "native_bf16"}: what a timing ran on."""
-    from pilight.train.loop import cpu_has_native_bf16
-
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
     return {
         "device": gpu or "cpu",

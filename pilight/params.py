@@ -504,7 +504,7 @@ class UNetParams(_Section):
 
     @model_validator(mode="after")
     def _structure(self) -> UNetParams:
-        """The channel list, the GroupNorm groups and the heads must fit each other (pilight.train.build):
+        """The channel list, the GroupNorm groups and the heads must fit each other (pilight.models.stack):
         a mismatch died in a modulo by zero or in min() of an empty list, far from the key."""
         ch = self.block_out_channels
         groups = min(32, min(ch))
@@ -641,7 +641,7 @@ class TrainParams(_Section):
 
 
 class ModelParams(_Section):
-    """What both diffusion stages share: built by pilight.train.build.build_stack."""
+    """What both diffusion stages share: built by pilight.models.stack.build_stack."""
 
     codec: CodecParams = CodecParams()
     unet: UNetParams = UNetParams()

@@ -11,15 +11,16 @@
 
 It follows diffusers' conventions (``from_pretrained`` / ``save_pretrained`` of a folder, output
 dataclasses) so the models drop into other people's code. The inference itself is the stages'
-own: ``IntrinsicsTask.predict`` and ``RelightTask.predict``, built from each model's config.json
-(the params that trained it), so a saved model needs no params.yaml. This module adds what a
+own: ``IntrinsicsModel.predict`` and ``RelightModel.predict`` (pilight.models), built from each model's
+config.json (the params that trained it), so a saved model needs no params.yaml, and nothing of
+training, shards or Blender is imported. This module adds what a
 photo needs around them: its size (processing resolution, outputs back at the input's size), a
 mask (all ones, or the photo's alpha: a photo has no ground-truth mask), the light balls, and a
 memory estimate checked before anything large is allocated.
 
 Stage 1 runs once per photo, however many lights stage 2 is asked for.
 
-Integrity (issue 36): each stage's folder carries its manifest (``pilight.train.build``: weights and
+Integrity (issue 36): each stage's folder carries its manifest (``pilight.models.folder``: weights and
 config.json), and a ``save_pretrained`` folder one more, ``checksums.json`` beside ``pipeline.json``,
 covering pipeline.json and both stage manifests. ``from_pretrained`` requires them; a folder made by
 hand loads with ``trust_unverified=True``, announced. pipeline.json and any ``from_pretrained``
@@ -218,13 +219,14 @@ def _format_validation(stage: str, exc) -> str:
 
 def load_stage(folder: Path, stage: str, device: torch.device, *, trust_unverified: bool = False):
     """One trained model (config.json + model.safetensors, verified by its manifest before either is read)
-    -> its Task, in eval mode on ``device``, and the params dict it was saved with."""
+    -> its inference model (pilight.models), in eval mode on ``device``, and the params dict it was saved with."""
     from pydantic import ValidationError
 
+    from pilight.models.folder import load_model, verify_model_folder
+    from pilight.models.intrinsics import IntrinsicsModel
+    from pilight.models.relight import RelightModel
+    from pilight.models.stack import ModelError
     from pilight.params import IntrinsicsParams, RelightParams
-    from pilight.train.build import ModelError, load_model, verify_model_folder
-    from pilight.train.intrinsics import IntrinsicsTask
-    from pilight.train.relight import RelightTask
 
     d = Path(folder) / stage
     cfg, weights = d / "config.json", d / "model.safetensors"
@@ -247,8 +249,8 @@ def load_stage(folder: Path, stage: str, device: torch.device, *, trust_unverifi
         raise PipelineError(f"{cfg}: unreadable model config ({exc}); retrain with `dvc repro train_relight`") from None
     raw = dict(saved)
     if stage == "relight":
-        # Inference needs neither the training conditions' predictions nor the L_rec features'
-        # weights: only the UNet and its codec and conditioning.
+        # Training-only keys that name files of the training machine (the conditions' predictions, the
+        # L_rec features' weights): inference reads neither, so they must not fail validation here.
         raw.update(conditions="gt", rec_features="pooled-rgb", dinov2_path=None)
     try:
         p = (IntrinsicsParams if stage == "intrinsics" else RelightParams).model_validate(raw)
@@ -257,14 +259,12 @@ def load_stage(folder: Path, stage: str, device: torch.device, *, trust_unverifi
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # e.g. decomposition: false is reported by the stages, not here
-            task = IntrinsicsTask(p, d, seed=0) if stage == "intrinsics" else RelightTask(p, d, seed=0)
-        load_model(task.stack, d, verified=True)
+            model = IntrinsicsModel(p) if stage == "intrinsics" else RelightModel(p)
+        load_model(model.stack, d, verified=True)
     except ModelError as exc:
         raise PipelineError(f"{exc} (the weights do not fit {cfg}: retrain with `dvc repro train_relight`)") from None
-    task.stack.model.eval().to(device)
-    if isinstance(task.stack.codec, torch.nn.Module):
-        task.stack.codec.to(device)
-    return task, saved
+    model.stack.model.eval()
+    return model.to(device), saved
 
 
 class PILightPipeline:
@@ -278,7 +278,7 @@ class PILightPipeline:
         device: str | torch.device = "cpu",
         saved_params: dict[str, dict] | None = None,
     ):
-        self.intrinsics, self.relight_task, self.config = intrinsics, relight, config
+        self.intrinsics_model, self.relight_model, self.config = intrinsics, relight, config
         self.device = torch.device(device)
         self.saved_params = saved_params or {}
 
@@ -300,7 +300,8 @@ class PILightPipeline:
         defaults; ``overrides`` (PipelineConfig fields) win over all three. Every file that decides what
         the pipeline computes is checked against its manifest first (module docstring); a folder made by
         hand, without manifests, loads with ``trust_unverified=True`` and an UnverifiedModelWarning."""
-        from pilight.train.build import ModelError, verify_manifest
+        from pilight.models.folder import verify_manifest
+        from pilight.models.stack import ModelError
 
         folder = Path(folder)
         if not folder.is_dir():
@@ -341,11 +342,11 @@ class PILightPipeline:
         over pipeline.json and both stage manifests; every file written, then renamed, so what this writes
         always loads with ``from_pretrained``. ``dtype`` (e.g. torch.float16): the weights' storage type
         (they load back as float32)."""
-        from pilight.train.build import save_model, write_manifest
+        from pilight.models.folder import save_model, write_manifest
 
         folder = Path(folder)
         self.config.validated("save_pretrained")
-        for stage, task in (("intrinsics", self.intrinsics), ("relight", self.relight_task)):
+        for stage, task in (("intrinsics", self.intrinsics_model), ("relight", self.relight_model)):
             params = self.saved_params.get(stage) or task.p.model_dump(mode="json")
             save_model(task.stack, folder / stage, params, dtype=dtype)
         atomic.write_json(folder / PIPELINE_FILE, self.config.to_json(), sort_keys=True)
@@ -369,7 +370,7 @@ class PILightPipeline:
     def size_multiple(self) -> int:
         """Processing sizes are multiples of this: each codec's factor times its UNet's downsampling."""
         m = []
-        for task in (self.intrinsics, self.relight_task):
+        for task in (self.intrinsics_model, self.relight_model):
             levels = len(task.stack.model.unet.config.block_out_channels)
             m.append(task.stack.codec.factor * 2 ** (levels - 1))
         return lcm(*m)
@@ -393,17 +394,17 @@ class PILightPipeline:
         ph, pw = self.processing_size(h, w, resolution)
         c = self.config
         dev = self._activation_bytes(
-            self.intrinsics, ph, pw, self._items(self.intrinsics, len(DOMAINS), c.intrinsics_sampling, 1)
+            self.intrinsics_model, ph, pw, self._items(self.intrinsics_model, len(DOMAINS), c.intrinsics_sampling, 1)
         )
         if lights:
             chunk = min(lights, c.relight_sampling.batch_size)
             dev = max(
                 dev,
                 self._activation_bytes(
-                    self.relight_task,
+                    self.relight_model,
                     ph,
                     pw,
-                    self._items(self.relight_task, self.relight_task.V, c.relight_sampling, chunk),
+                    self._items(self.relight_model, self.relight_model.V, c.relight_sampling, chunk),
                 ),
             )
         host = 4 * h * w * (HOST_FLOATS_DECOMPOSE + HOST_FLOATS_PER_LIGHT * lights)
@@ -471,7 +472,7 @@ class PILightPipeline:
         photo, x, m = self._prepare(image, resolution, name)
         sp = self.config.intrinsics_sampling
         gen = torch.Generator().manual_seed(self.config.seed)
-        pred = self.intrinsics.predict(x.to(self.device), DOMAINS, sp, gen)
+        pred = self.intrinsics_model.predict(x.to(self.device), DOMAINS, sp, gen)
         cond = {d: pred[d].float().cpu() for d in DOMAINS}
         cond["normal"] = cond["normal"] * m  # the contract: normals are 0 off the mask
         cond["image"], cond["mask"] = x, m
@@ -545,7 +546,7 @@ class PILightPipeline:
             batch = {"image_a": rep(x), "ball_b": b.to(self.device), "mask": rep(m)}
             intr = {d: rep(cond[d]) for d in DOMAINS}
             gen = torch.Generator().manual_seed(self.config.seed)
-            pred = self.relight_task.predict(batch, sp, gen, intr, intensity=intensity)
+            pred = self.relight_model.predict(batch, sp, gen, intr, intensity=intensity)
             for key, v in pred.items():
                 outs.setdefault(key, []).append(v.float().cpu())
         h, w = photo.size

@@ -27,16 +27,8 @@ from pathlib import Path
 
 from pilight import atomic
 from pilight.data.schema import DataError
+from pilight.failure import CommandFailure
 from pilight.params import ParamsError, load_section
-
-
-class StageFailure(Exception):
-    """A failure the stage reports as one line and exit ``code`` (1; 2 for a params value that turns
-    out unusable once it is used, e.g. a weights folder that does not load)."""
-
-    def __init__(self, message: str, code: int = 1):
-        super().__init__(message)
-        self.code = code
 
 
 @contextmanager
@@ -47,7 +39,7 @@ def fails_on(*errors: type[BaseException]) -> Iterator[None]:
     try:
         yield
     except errors as exc:
-        raise StageFailure(str(exc)) from exc
+        raise CommandFailure(str(exc)) from exc
 
 
 def run_stage(
@@ -76,6 +68,6 @@ def run_stage(
             shown = ", ".join(map(str, swept[:3])) + (f" and {len(swept) - 3} more" if len(swept) > 3 else "")
             print(f"{name}: removed {len(swept)} temporary output(s) left by a killed run: {shown}", file=sys.stderr)
         return body(args, *params)
-    except (StageFailure, DataError) as exc:
+    except (CommandFailure, DataError) as exc:
         print(f"{name}: {exc}", file=sys.stderr)
-        return exc.code if isinstance(exc, StageFailure) else 1
+        return exc.code if isinstance(exc, CommandFailure) else 1

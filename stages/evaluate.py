@@ -22,7 +22,8 @@ import sys
 from pathlib import Path
 
 from pilight import atomic
-from pilight.stage_cli import StageFailure, run_stage
+from pilight.failure import CommandFailure
+from pilight.stage_cli import run_stage
 
 
 def options(ap) -> None:
@@ -58,7 +59,7 @@ def body(args, base, ev) -> int:
     try:
         lpips, lpips_note = load_lpips(ev.lpips_net, ev.lpips_backbone)
     except (OSError, ValueError) as exc:  # a params value that does not load: a params error
-        raise StageFailure(f"evaluate.lpips_backbone: {exc}", code=2) from exc
+        raise CommandFailure(f"evaluate.lpips_backbone: {exc}", code=2) from exc
     intr, intr_md, intr_grid = intrinsics_report(args.shards, args.pred, "test", lpips, lpips_note, ev.grid_images)
     relight, relight_md, relight_grid = relight_report(args.shards, relit_dir, lpips, lpips_note, ev.grid_images)
     if relight_md is None:

@@ -17,7 +17,8 @@ import shutil
 import sys
 from pathlib import Path
 
-from pilight.stage_cli import StageFailure, fails_on, run_stage
+from pilight.failure import CommandFailure
+from pilight.stage_cli import fails_on, run_stage
 
 MAX_BYTES = 40 * 1024 * 1024  # both stages' safetensors together: the shipped base lives in git
 
@@ -33,7 +34,7 @@ def _read(path: Path) -> dict:
     try:
         return json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as exc:
-        raise StageFailure(f"{path}: unreadable ({exc})") from None
+        raise CommandFailure(f"{path}: unreadable ({exc})") from None
 
 
 def body(args, base, render, intrinsics, relight) -> int:
@@ -57,7 +58,7 @@ def body(args, base, render, intrinsics, relight) -> int:
     size = sum(f.stat().st_size for f in tmp.rglob("*.safetensors"))
     if size > MAX_BYTES:
         shutil.rmtree(tmp)
-        raise StageFailure(f"{args.out}: the weights take {size / 2**20:.1f} MB, over the 40 MB git budget")
+        raise CommandFailure(f"{args.out}: the weights take {size / 2**20:.1f} MB, over the 40 MB git budget")
     card = model_card(base, render, intrinsics, relight, metrics=metrics, training=training, weights_bytes=size)
     (tmp / CARD).write_text(card, encoding="utf-8")
     old = args.out.with_name(f".{args.out.name}.old")

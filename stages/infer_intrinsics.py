@@ -26,16 +26,17 @@ def options(ap) -> None:
 def body(args, base, p, ip) -> int:
     from pilight.data.shards import read_index
     from pilight.eval.predict_intrinsics import predict_intrinsics_splits
-    from pilight.train.build import ModelError, load_model
-    from pilight.train.intrinsics import IntrinsicsTask
+    from pilight.models.folder import load_model
+    from pilight.models.intrinsics import IntrinsicsModel
+    from pilight.models.stack import ModelError
 
     with fails_on(ModelError, FileNotFoundError, ValueError):
         index = read_index(args.shards)
-        task = IntrinsicsTask(p, args.shards, seed=base.training_seed)
-        load_model(task.stack, args.model)
-    task.stack.model.eval()
+        model = IntrinsicsModel(p)
+        load_model(model.stack, args.model)
+    model.stack.model.eval()
     with fails_on(ValueError, OSError):  # shards are read (and verified) while predicting; or a full disk
-        m = predict_intrinsics_splits(task, args.shards, index, args.out, ip, base.training_seed, task.stack.describe())
+        m = predict_intrinsics_splits(model, args.shards, index, args.out, ip, base.training_seed, model.describe())
         atomic.write_json(args.metrics, m)
     print(
         f"infer_intrinsics: {m['images']} images, {m['seconds_per_image']:.3f} s/image ({ip.mode}, {ip.steps} steps, "

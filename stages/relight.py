@@ -17,7 +17,8 @@ import sys
 from pathlib import Path
 
 from pilight import atomic
-from pilight.stage_cli import StageFailure, fails_on, run_stage
+from pilight.failure import CommandFailure
+from pilight.stage_cli import fails_on, run_stage
 
 
 def options(ap) -> None:
@@ -32,20 +33,21 @@ def options(ap) -> None:
 def body(args, base, p, ip) -> int:
     from pilight.data.shards import read_index
     from pilight.eval.relit_pairs import relight_split
+    from pilight.models.folder import load_model
+    from pilight.models.relight import RelightModel
+    from pilight.models.stack import ModelError, check_image_size
     from pilight.relight.conditions import optional_predictions
-    from pilight.train.build import ModelError, check_image_size, load_model
-    from pilight.train.relight import RelightTask
 
     with fails_on(ModelError, FileNotFoundError, ValueError):
         index = read_index(args.shards)
         if not index["splits"].get(ip.split, {}).get("shards"):
-            raise StageFailure(f"{args.shards}: the {ip.split} split has no shards")
-        task = RelightTask(p.model_copy(update={"conditions": "gt"}), args.shards, seed=base.training_seed)
-        check_image_size(tuple(index["sizes"]["image"][:2]), task.stack.codec.factor, f"{args.shards}/index.json")
-        load_model(task.stack, args.model)
+            raise CommandFailure(f"{args.shards}: the {ip.split} split has no shards")
+        model = RelightModel(p)
+        check_image_size(tuple(index["sizes"]["image"][:2]), model.stack.codec.factor, f"{args.shards}/index.json")
+        load_model(model.stack, args.model)
         preds = optional_predictions(args.shards, args.pred, ip.split, "relight")
-    task.stack.model.eval()
-    m = relight_split(task, args.shards, args.out, ip.split, ip, base.training_seed, preds, not args.no_flip_check)
+    model.stack.model.eval()
+    m = relight_split(model, args.shards, args.out, ip.split, ip, base.training_seed, preds, not args.no_flip_check)
     atomic.write_json(args.metrics, m, sort_keys=True)
     print(
         f"relight: {m['pairs']} pairs, {m['seconds_per_pair']:.3f} s/pair ({ip.mode}, {ip.steps} steps, "

@@ -32,14 +32,14 @@ def options(ap) -> None:
 
 def body(args, base, p1, ip1, p2, ip2, ev) -> int:
     from pilight.eval import trade
-    from pilight.train.build import ModelError, load_model
-    from pilight.train.intrinsics import IntrinsicsTask
-    from pilight.train.relight import RelightTask
+    from pilight.models.folder import load_model
+    from pilight.models.intrinsics import IntrinsicsModel
+    from pilight.models.relight import RelightModel
+    from pilight.models.stack import ModelError
 
     with fails_on(ModelError, FileNotFoundError, ValueError):
-        t1 = IntrinsicsTask(p1, args.shards, seed=base.training_seed)
+        t1, t2 = IntrinsicsModel(p1), RelightModel(p2)
         load_model(t1.stack, args.intrinsics_model)
-        t2 = RelightTask(p2.model_copy(update={"conditions": "gt"}), args.shards, seed=base.training_seed)
         load_model(t2.stack, args.relight_model)
         imgs, pairs, preds = trade.sweep_samples(args.shards, args.pred, ip2.split, ev.trade.images)
     t1.stack.model.eval()

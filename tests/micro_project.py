@@ -41,8 +41,8 @@ def save_micro_base(folder: Path, params: dict) -> Path:
     their own tiny networks, untrained, saved as the export stage saves the real one (float16)."""
     import torch
 
+    from pilight.models.folder import save_model
     from pilight.params import IntrinsicsParams, RelightParams
-    from pilight.train.build import save_model
     from pilight.train.intrinsics import IntrinsicsTask
     from pilight.train.relight import RelightTask
 

@@ -116,7 +116,7 @@ def test_the_readme_has_a_picture_on_its_first_screen():
 @pytest.mark.parametrize(
     "command",
     [
-        "python3.11 -m venv .venv && . .venv/bin/activate && pip install torch==2.13.0 && pip install -e . && dvc repro",
+        "python3.11 -m venv .venv && . .venv/bin/activate && pip install torch==2.13.0 && pip install -e '.[pipeline]' && dvc repro",
         "bash .ci/run",
     ],
 )

@@ -7,8 +7,9 @@ from pathlib import Path
 import pytest
 
 from pilight.data.schema import DataError
+from pilight.failure import CommandFailure
 from pilight.params import load_section
-from pilight.stage_cli import StageFailure, fails_on, run_stage
+from pilight.stage_cli import fails_on, run_stage
 from tests.stage_scripts import REPO
 
 PARAMS = REPO / "params.yaml"
@@ -40,7 +41,7 @@ def test_bad_params_exit_2_before_the_body_runs(tmp_path, capsys):
     [
         (DataError("a.tar: damaged shard"), 1),
         (OSError("a.tar: disk full"), 1),
-        (StageFailure("a.tar: weights do not load", code=2), 2),
+        (CommandFailure("a.tar: weights do not load", code=2), 2),
     ],
 )
 def test_failures_are_one_line_and_their_code(error, code, capsys):

@@ -37,13 +37,16 @@ def _stage(name: str):
     return module
 
 
-def _stub_task(seen: list, factor: int = 4):
-    def make(p, shards, seed, **kw):
-        seen.append(("task", seed))
+def _stub_task(seen: list | None, factor: int = 4):
+    """A stand-in for a training Task (records the seed it is given) or, with ``seen`` None, for an
+    inference model (pilight.models: built from the params alone, no seed)."""
+
+    def make(p, shards=None, seed=None, **kw):
+        if seen is not None:
+            seen.append(("task", seed))
         model = SimpleNamespace(eval=lambda: None)
-        return SimpleNamespace(
-            stack=SimpleNamespace(model=model, describe=lambda: {}, codec=SimpleNamespace(factor=factor))
-        )
+        stack = SimpleNamespace(model=model, describe=lambda: {}, codec=SimpleNamespace(factor=factor))
+        return SimpleNamespace(stack=stack, describe=lambda: {})
 
     return make
 
@@ -55,8 +58,11 @@ def _seeds_of(stage: str, params: Path, monkeypatch) -> list:
     import pilight.eval.predict_intrinsics as predict
     import pilight.eval.relit_pairs as relit_pairs
     import pilight.eval.trade as trade
+    import pilight.models.folder as folder
+    import pilight.models.intrinsics as intrinsics_model
+    import pilight.models.relight as relight_model
+    import pilight.models.stack as stack
     import pilight.relight.conditions as conditions
-    import pilight.train.build as build
     import pilight.train.intrinsics as intrinsics
     import pilight.train.relight as relight
     import pilight.train.stage as train_stage
@@ -64,8 +70,10 @@ def _seeds_of(stage: str, params: Path, monkeypatch) -> list:
     seen: list = []
     monkeypatch.setattr(intrinsics, "IntrinsicsTask", _stub_task(seen))
     monkeypatch.setattr(relight, "RelightTask", _stub_task(seen))
-    monkeypatch.setattr(build, "load_model", lambda *a, **k: None)
-    monkeypatch.setattr(build, "check_image_size", lambda *a, **k: None)
+    monkeypatch.setattr(intrinsics_model, "IntrinsicsModel", _stub_task(None))
+    monkeypatch.setattr(relight_model, "RelightModel", _stub_task(None))
+    monkeypatch.setattr(folder, "load_model", lambda *a, **k: None)
+    monkeypatch.setattr(stack, "check_image_size", lambda *a, **k: None)
     monkeypatch.setattr(
         shards, "read_index", lambda d: {"splits": {"test": {"shards": ["x"]}}, "sizes": {"image": [16, 16]}}
     )

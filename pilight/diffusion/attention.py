@@ -1,15 +1,15 @@
 """Cross-batch ("batch-aware") self-attention (paper Sec. Stage 1 Pipeline; Appendix
 "More Explanation on the batch-aware self-attention").
 
-The batch holds ``samples x views`` items ordered sample-major: item ``i`` is view
-``i % V`` of sample ``i // V`` (views = the intrinsic domains albedo, normal,
+The batch holds ``samples x V`` items ordered sample-major: item ``i`` is item
+``i % V`` of sample ``i // V`` (the V items of a sample: the intrinsic domains albedo, normal,
 roughness, metallic).  In every self-attention layer (diffusers' ``attn1``) each
-view's queries attend to the keys/values of all V views of the same sample:
+item's queries attend to the keys/values of all V items of the same sample:
 
     q_a = W_q z^a,   k_a = W_k (z^a (+) z^n (+) z^r (+) z^m),   v_a = W_v (same concat)
 
 and likewise for n, r, m (appendix equations).  Softmax attention is invariant to
-the order of the concatenated keys, so all views can share one concatenation:
+the order of the concatenated keys, so all items can share one concatenation:
 reshape (B*V, N, C) -> (B, V*N, C) for q, k and v, run SDPA, reshape back.
 Cross-attention (``attn2``, CLIP image embedding) is left per-item.
 """
@@ -26,14 +26,14 @@ class CrossBatchAttnProcessor:
 
     Mirrors AttnProcessor2_0 step by step (spatial_norm, 4-D input, group_norm,
     norm_q/norm_k, residual, rescale_output_factor); the only change is that the
-    token axis of q, k and v spans the V views of a sample.  With V = 1 it computes
+    token axis of q, k and v spans the V items of a sample.  With V = 1 it computes
     exactly what AttnProcessor2_0 computes.
     """
 
-    def __init__(self, num_views: int):
-        if int(num_views) < 1:
-            raise ValueError(f"num_views must be >= 1, got {num_views}")
-        self.num_views = int(num_views)
+    def __init__(self, items_per_sample: int):
+        if int(items_per_sample) < 1:
+            raise ValueError(f"items_per_sample must be >= 1, got {items_per_sample}")
+        self.items_per_sample = int(items_per_sample)
 
     def __call__(
         self,
@@ -50,9 +50,9 @@ class CrossBatchAttnProcessor:
             )
         if attention_mask is not None:
             raise ValueError(
-                "CrossBatchAttnProcessor refuses attention masks: a per-item mask has no meaning across views"
+                "CrossBatchAttnProcessor refuses attention masks: a per-item mask has no meaning across items"
             )
-        views = self.num_views
+        per_sample = self.items_per_sample
         residual = hidden_states
         if attn.spatial_norm is not None:
             hidden_states = attn.spatial_norm(hidden_states, temb)
@@ -62,12 +62,12 @@ class CrossBatchAttnProcessor:
             batch_size, channel, height, width = hidden_states.shape
             hidden_states = hidden_states.view(batch_size, channel, height * width).transpose(1, 2)
         batch_size, tokens, _ = hidden_states.shape
-        if batch_size % views:
+        if batch_size % per_sample:
             raise ValueError(
                 f"cross-batch attention: batch size {batch_size} is not divisible by "
-                f"num_views {views} (batch must be samples x views, sample-major)"
+                f"items_per_sample {per_sample} (batch must be samples x items, sample-major)"
             )
-        samples = batch_size // views
+        samples = batch_size // per_sample
 
         if attn.group_norm is not None:
             hidden_states = attn.group_norm(hidden_states.transpose(1, 2)).transpose(1, 2)
@@ -79,10 +79,10 @@ class CrossBatchAttnProcessor:
         inner_dim = key.shape[-1]
         head_dim = inner_dim // attn.heads
 
-        # (B*V, N, C) -> (B, V*N, heads, d) -> (B, heads, V*N, d): the V views of a sample are
+        # (B*V, N, C) -> (B, V*N, heads, d) -> (B, heads, V*N, d): the V items of a sample are
         # contiguous in the batch, so this view() concatenates their tokens (the (+) above).
         def to_heads(x: torch.Tensor) -> torch.Tensor:
-            return x.reshape(samples, views * tokens, attn.heads, head_dim).transpose(1, 2)
+            return x.reshape(samples, per_sample * tokens, attn.heads, head_dim).transpose(1, 2)
 
         query, key, value = to_heads(query), to_heads(key), to_heads(value)
         if attn.norm_q is not None:
@@ -108,17 +108,17 @@ class CrossBatchAttnProcessor:
         return hidden_states / attn.rescale_output_factor
 
 
-def set_cross_batch_attention(unet: torch.nn.Module, num_views: int | None) -> int:
-    """Install ``CrossBatchAttnProcessor(num_views)`` on every self-attention layer
-    (processor names ending in "attn1.processor"); ``num_views`` None or 1 installs
-    diffusers' ``AttnProcessor2_0`` on every layer (the ablation: independent views).
+def set_cross_batch_attention(unet: torch.nn.Module, items_per_sample: int | None) -> int:
+    """Install ``CrossBatchAttnProcessor(items_per_sample)`` on every self-attention layer
+    (processor names ending in "attn1.processor"); ``items_per_sample`` None or 1 installs
+    diffusers' ``AttnProcessor2_0`` on every layer (the ablation: independent items).
     Returns the number of self-attention layers set to cross-batch (0 for the ablation).
     """
     processors = unet.attn_processors
-    if num_views is None or int(num_views) == 1:
+    if items_per_sample is None or int(items_per_sample) == 1:
         unet.set_attn_processor({name: AttnProcessor2_0() for name in processors})
         return 0
-    cross = CrossBatchAttnProcessor(int(num_views))
+    cross = CrossBatchAttnProcessor(int(items_per_sample))
     new = {name: (cross if name.endswith("attn1.processor") else AttnProcessor2_0()) for name in processors}
     changed = sum(name.endswith("attn1.processor") for name in processors)
     if changed == 0:

@@ -1,9 +1,9 @@
 """``DomainDiffusion``: the Stage 1 (and Stage 2 branch) denoiser around the UNet.
 
-One batched call predicts v for ``samples x views`` items (sample-major).  Item i gets
+One batched call predicts v for ``samples x V`` items (sample-major).  Item i gets
 ``[noisy latent_i, condition latent_i]`` on channels (paper Sec. Stage 1) and a one-hot
 domain label (paper: "four one-hot labels L ... control which batch outputs which
-intrinsic component"); the views of a sample talk to each other through cross-batch
+intrinsic component"); the items of a sample talk to each other through cross-batch
 self-attention (``attention.py``).
 """
 
@@ -29,11 +29,11 @@ class DomainDiffusion(nn.Module):
 
     Cross-batch attention is whatever ``set_cross_batch_attention`` installed on the UNet
     (``cross_batch=None``, the default, keeps it); ``cross_batch=True/False`` installs it
-    here.  ``num_views`` is the number of consecutive batch items that form one sample
-    (default: the installed processors' value, else ``num_domains``); ``set_views``
+    here.  ``items_per_sample`` is the number of consecutive batch items that form one sample
+    (default: the installed processors' value, else ``num_domains``); ``set_items_per_sample``
     changes it in place on the installed processors, so a later V = 1 call (one domain)
     does not switch cross-batch attention off for good.  Without cross-batch processors
-    (the ablation) ``num_views`` only validates the batch layout.
+    (the ablation) ``items_per_sample`` only validates the batch layout.
 
     ``terminal_timestep`` (schedule.terminal_input: zero, set to T-1): items at that timestep
     read a zero latent instead of x_t; None (the paper) = every item reads x_t.
@@ -45,7 +45,7 @@ class DomainDiffusion(nn.Module):
         conditioning: nn.Module,
         num_domains: int,
         cond_channels: int,
-        num_views: int | None = None,
+        items_per_sample: int | None = None,
         cross_batch: bool | None = None,
         terminal_timestep: int | None = None,
     ):
@@ -71,13 +71,13 @@ class DomainDiffusion(nn.Module):
         self.num_domains = int(num_domains)
         self.cond_channels = int(cond_channels)
         self.latent_channels = int(cfg.out_channels)
-        if num_views is None:
-            installed = {p.num_views for p in self._cross_batch_processors()}
-            num_views = installed.pop() if len(installed) == 1 else num_domains
+        if items_per_sample is None:
+            installed = {p.items_per_sample for p in self._cross_batch_processors()}
+            items_per_sample = installed.pop() if len(installed) == 1 else num_domains
         if cross_batch is not None:
             # V = 1 would install plain processors; install V >= 2 and set V in place below.
-            set_cross_batch_attention(unet, max(2, num_views) if cross_batch else None)
-        self.set_views(num_views)
+            set_cross_batch_attention(unet, max(2, items_per_sample) if cross_batch else None)
+        self.set_items_per_sample(items_per_sample)
         # Items at this timestep read a zero latent instead of x_t (schedule.terminal_input: zero);
         # None = they read x_t. Both training and sampling go through forward().
         self.terminal_timestep = terminal_timestep
@@ -89,13 +89,13 @@ class DomainDiffusion(nn.Module):
     def cross_batch(self) -> bool:
         return bool(self._cross_batch_processors())
 
-    def set_views(self, num_views: int) -> None:
-        """Group every ``num_views`` consecutive items into one sample (cross-batch attention)."""
-        if num_views < 1:
-            raise ValueError(f"num_views must be >= 1, got {num_views}")
+    def set_items_per_sample(self, items_per_sample: int) -> None:
+        """Group every ``items_per_sample`` consecutive items into one sample (cross-batch attention)."""
+        if items_per_sample < 1:
+            raise ValueError(f"items_per_sample must be >= 1, got {items_per_sample}")
         for processor in self._cross_batch_processors():
-            processor.num_views = int(num_views)
-        self.num_views = int(num_views)
+            processor.items_per_sample = int(items_per_sample)
+        self.items_per_sample = int(items_per_sample)
 
     def embed(self, images: torch.Tensor) -> torch.Tensor:
         """Cross-attention tokens for [-1, 1] condition images (B x T x D)."""
@@ -149,8 +149,8 @@ class DomainDiffusion(nn.Module):
             raise ValueError(
                 f"domain_ids must be a long tensor of shape ({n},), got {domain_ids.dtype} {tuple(domain_ids.shape)}"
             )
-        if n % self.num_views:
-            raise ValueError(f"batch {n} is not samples x num_views ({self.num_views})")
+        if n % self.items_per_sample:
+            raise ValueError(f"batch {n} is not samples x items_per_sample ({self.items_per_sample})")
         if encoder_hidden_states.shape[0] != n:
             raise ValueError(f"encoder_hidden_states has batch {encoder_hidden_states.shape[0]}, expected {n}")
         if int(domain_ids.min()) < 0 or int(domain_ids.max()) >= self.num_domains:

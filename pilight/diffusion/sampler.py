@@ -1,13 +1,13 @@
 """Sampling x0 latents from a ``DomainDiffusion`` (v-prediction).
 
 All V requested domains of all samples run in one batched UNet call per step, so the
-views can attend to each other.  Batch layout of one call, outer to inner:
+items can attend to each other.  Batch layout of one call, outer to inner:
 
-    [guidance branch (cond, uncond)] x [ensemble member] x [sample] x [view]
+    [guidance branch (cond, uncond)] x [ensemble member] x [sample] x [item]
 
 Every block boundary is a multiple of V, so a cross-batch attention group of V
-consecutive items always holds the V views of one (branch, member, sample): the
-conditional and unconditional views are never mixed.
+consecutive items always holds the V items of one (branch, member, sample): the
+conditional and unconditional items are never mixed.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ def sample(
     domain_ids: torch.Tensor,
     encoder_hidden_states: torch.Tensor,
     *,
-    num_views: int,
+    items_per_sample: int,
     steps: int = 10,
     cfg_scale: float = 1.0,
     timestep_spacing: str = "trailing",
@@ -40,7 +40,7 @@ def sample(
     scheduler_config: Any = None,
     noise: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """x0 latents (B*V x C x h x w) for ``B*V`` items (sample-major, V = ``num_views``).
+    """x0 latents (B*V x C x h x w) for ``B*V`` items (sample-major, V = ``items_per_sample``).
 
     ``cond_latents``, ``domain_ids``, ``encoder_hidden_states`` have one entry per item;
     any subset of domains works (e.g. albedo + normal only: V = 2, half the cost).
@@ -57,8 +57,8 @@ def sample(
     ``scheduler_config``: the training scheduler's config (default ``make_train_scheduler()``).
     """
     n, _, h, w = cond_latents.shape
-    if n % num_views:
-        raise ValueError(f"{n} items are not samples x num_views ({num_views})")
+    if n % items_per_sample:
+        raise ValueError(f"{n} items are not samples x items_per_sample ({items_per_sample})")
     if domain_ids.shape != (n,) or encoder_hidden_states.shape[0] != n:
         raise ValueError(
             f"need one domain id and one embedding per item ({n}), got {tuple(domain_ids.shape)} "
@@ -132,8 +132,8 @@ def sample(
             v = v_u + cfg_scale * (v_c - v_u)
         return v
 
-    previous_views = model.num_views
-    model.set_views(num_views)
+    previous_items = model.items_per_sample
+    model.set_items_per_sample(items_per_sample)
     try:
         if mode == "single_step":
             t_last = torch.full((latents.shape[0],), scheduler.config.num_train_timesteps - 1, device=device)
@@ -144,7 +144,7 @@ def sample(
                 latents = scheduler.step(predict_v(latents, t), t, latents, eta=0.0).prev_sample
             x0 = latents
     finally:
-        model.set_views(previous_views)  # leave the training-time grouping as it was
+        model.set_items_per_sample(previous_items)  # leave the training-time grouping as it was
     return x0.view(ensemble, n, *x0.shape[1:]).mean(0)
 
 

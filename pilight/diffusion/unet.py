@@ -25,7 +25,7 @@ from diffusers.models.embeddings import TimestepEmbedding
 class UNetSpec:
     """Architecture of a UNet trained from scratch.  The defaults are a small config that
     trains on CPU at a 32x32 latent: attention only at 16x16 and 8x8 (and the mid block),
-    where cross-batch attention over 4 views costs 4*256 and 4*64 tokens."""
+    where cross-batch attention over 4 items costs 4*256 and 4*64 tokens."""
 
     sample_size: int = 32
     block_out_channels: tuple[int, ...] = (64, 128, 128)

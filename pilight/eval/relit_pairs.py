@@ -35,7 +35,8 @@ from pilight.data.predictions import write_predictions
 from pilight.data.shards import eval_dataset, make_loader
 from pilight.eval.flip_check import FLIP_CHECK_BATCHES, flip_check
 from pilight.eval.light_following import PROBE_LIGHTS, PROBE_SPLIT, cross_light, probe_batch, probe_key, select_probes
-from pilight.relight.conditions import PRED_DOMAINS, choose_intrinsics
+from pilight.params import DOMAINS
+from pilight.relight.conditions import choose_intrinsics
 from pilight.relight.intensity import relative_pair
 
 PROBE_IMAGES = 12  # light-following probe images (the issue asks for at least 12)
@@ -134,7 +135,7 @@ def index_info(task, ip, source: str, written: dict[str, str]) -> dict:
         "branches": list(task.branches),
         "sampling": ip.model_dump(mode="json"),
         "conditions": source,
-        "condition_domains": list(PRED_DOMAINS),
+        "condition_domains": list(DOMAINS),
         "parts": task.describe(),
         "splits_written": written,
     }

@@ -16,8 +16,7 @@ from pilight.data import schema
 from pilight.data.pairs import read_pairs
 from pilight.data.predictions import read_predictions
 from pilight.data.schema import DataError
-
-PRED_DOMAINS = ("albedo", "normal", "roughness", "metallic")  # what stage 1 predicts; the mask stays GT
+from pilight.params import DOMAINS
 
 
 def _sample_keys(batch: dict) -> list[str]:
@@ -49,11 +48,10 @@ def load_condition_predictions(
             f"{why}: {pred_dir} has no {split!r} predictions for {len(missing)} input image(s), e.g. "
             f"{missing[:3]}; rerun infer_intrinsics on the current shards"
         )
-    short = sorted({d for k in needed for d in PRED_DOMAINS if d not in preds[k]})
+    short = sorted({d for k in needed for d in DOMAINS if d not in preds[k]})
     if short:
         raise DataError(
-            f"{why}: {pred_dir} lacks predicted {short} (infer_intrinsics.domains must "
-            f"include all of {list(PRED_DOMAINS)})"
+            f"{why}: {pred_dir} lacks predicted {short} (infer_intrinsics.domains must include all of {list(DOMAINS)})"
         )
     return preds
 
@@ -69,7 +67,7 @@ def optional_predictions(shard_dir: Path, pred_dir: Path, split: str, why: str) 
 
 def choose_intrinsics(batch: dict, use_pred: torch.Tensor, preds: dict | None) -> dict[str, torch.Tensor]:
     """Per sample: stage-1 predictions of image a where use_pred, ground truth elsewhere."""
-    out = {d: batch[d].clone() for d in PRED_DOMAINS}
+    out = {d: batch[d].clone() for d in DOMAINS}
     if not bool(use_pred.any()):
         return out
     for i, key in enumerate(_sample_keys(batch)):
@@ -77,6 +75,6 @@ def choose_intrinsics(batch: dict, use_pred: torch.Tensor, preds: dict | None) -
             continue
         if preds is None or key not in preds:
             raise DataError(f"no stage-1 prediction for input image {key}")
-        for d in PRED_DOMAINS:
+        for d in DOMAINS:
             out[d][i] = torch.from_numpy(preds[key][d]).permute(2, 0, 1).to(out[d])
     return out

@@ -33,35 +33,21 @@ from pilight.data.colour import linear_to_srgb, srgb_to_linear, to_uint8
 from pilight.data.shards import intrinsics_dataset, make_loader
 from pilight.diffusion.schedule import sample_timesteps, v_to_x0
 from pilight.eval.grids import labelled_grid
-from pilight.params import DOMAINS, IntrinsicsParams, SamplingParams
-from pilight.train.build import PREVIEW_SAMPLING, Stack, build_stack
+from pilight.models.intrinsics import IntrinsicsModel
+from pilight.models.stack import PREVIEW_SAMPLING
+from pilight.params import DOMAINS, IntrinsicsParams
 from pilight.train.map_losses import task_loss
 
 
 def domain_targets(batch: dict, domains: tuple[str, ...] = DOMAINS, albedo_space: str = "linear") -> torch.Tensor:
     """(B, V, 3, H, W) in [-1, 1]; 1-channel maps are replicated to 3 so every domain has one latent shape.
-    albedo_space "srgb": the albedo is predicted in sRGB (decoded back to linear by targets_to_maps)."""
+    albedo_space "srgb": the albedo is predicted in sRGB (decoded back to linear by pilight.models.intrinsics.targets_to_maps)."""
     maps = []
     for d in domains:
         x = batch[d]
         x = schema.to_model(d, linear_to_srgb(x.clamp(0, 1)) if d == "albedo" and albedo_space == "srgb" else x)
         maps.append(x.expand(-1, 3, -1, -1) if x.shape[1] == 1 else x)
     return torch.stack(maps, dim=1)
-
-
-def targets_to_maps(x: torch.Tensor, domains: tuple[str, ...], albedo_space: str = "linear") -> dict[str, torch.Tensor]:
-    """Inverse of `domain_targets` for predictions (B, V, 3, H, W) -> linear maps in their ranges."""
-    out = {}
-    for i, d in enumerate(domains):
-        y = x[:, i].clamp(-1, 1)
-        if d == "normal":
-            out[d] = F.normalize(y, dim=1, eps=1e-6)
-        elif d in ("roughness", "metallic"):
-            out[d] = schema.from_model(d, y.mean(dim=1, keepdim=True)).clamp(0, 1)
-        else:
-            a = schema.from_model(d, y).clamp(0, 1)  # in [0, 1]: the sRGB curve's domain
-            out[d] = srgb_to_linear(a) if albedo_space == "srgb" else a
-    return out
 
 
 def latent_mask(mask: torch.Tensor, factor: int) -> torch.Tensor:
@@ -113,18 +99,13 @@ def decoded_maps(pred: torch.Tensor, domains: tuple[str, ...], albedo_space: str
     return out
 
 
-class IntrinsicsTask:
-    """The stage-1 Task for pilight.train.loop.train."""
+class IntrinsicsTask(IntrinsicsModel):
+    """The stage-1 Task for pilight.train.loop.train: the inference model (pilight.models.intrinsics) and
+    what training adds to it (batches, augmentations, the loss, the previews)."""
 
     def __init__(self, p: IntrinsicsParams, shard_dir: Path, *, seed: int, device: str = "cpu"):
-        self.p, self.shard_dir, self.seed, self.device = p, Path(shard_dir), seed, device
-        self.joint = p.layout == "joint"
-        V = len(DOMAINS)
-        self.stack: Stack = (
-            build_stack(p, num_domains=1, num_views=1, cond_channels=None, maps_per_item=V)
-            if self.joint
-            else build_stack(p, num_domains=V, cond_channels=None)
-        )
+        super().__init__(p)
+        self.shard_dir, self.seed, self.device = Path(shard_dir), seed, device
         self.samples_per_batch = p.train.batch_size
         self.preview = PREVIEW_SAMPLING
 
@@ -135,18 +116,6 @@ class IntrinsicsTask:
         ds = intrinsics_dataset(self.shard_dir, "train", shuffle=True, seed=self.seed)
         ds.set_epoch(epoch)
         return make_loader(ds, self.p.train.batch_size, num_workers=self.p.train.num_workers, drop_last=True)
-
-    def _items(self, z: torch.Tensor, B: int) -> torch.Tensor:
-        """(B*V, C, h, w) per-domain latents -> the UNet's items: the same (domains) or (B, V*C, h, w) (joint)."""
-        return z.unflatten(0, (B, -1)).flatten(1, 2) if self.joint else z
-
-    def _domains(self, x: torch.Tensor, B: int) -> torch.Tensor:
-        """Inverse of ``_items``: UNet items -> (B*V, C, h, w)."""
-        return x.unflatten(1, (len(DOMAINS), -1)).flatten(0, 1) if self.joint else x
-
-    def _ids(self, B: int, dev) -> torch.Tensor:
-        V = len(DOMAINS)
-        return torch.zeros(B, dtype=torch.long, device=dev) if self.joint else torch.arange(V, device=dev).repeat(B)
 
     def loss(
         self, batch: dict, generator: torch.Generator, model: torch.nn.Module | None = None
@@ -198,30 +167,6 @@ class IntrinsicsTask:
         mask = (batch["mask"].to(dev) > 0.5).float()
         loss, terms = task_loss(maps, gt, mask, self.p.task_loss)
         return loss, terms | {"mask_fraction": float(mask.mean())}
-
-    @torch.no_grad()
-    def predict(
-        self,
-        image: torch.Tensor,
-        domains: tuple[str, ...],
-        sp: SamplingParams,
-        generator: torch.Generator | None = None,
-    ) -> dict[str, torch.Tensor]:
-        """Linear HDR image batch (B, 3, H, W) -> predicted maps for `domains`, all in one batched pass."""
-        s = self.stack
-        dev = next(s.model.parameters()).device
-        x = schema.to_model("image", image).to(dev)
-        B, V = x.shape[0], len(domains)
-        if self.joint:  # one item carries every map; a subset costs the same, and is picked afterwards
-            z0 = s.sample(s.codec.encode(x), self._ids(B, dev), x, 1, sp, generator)
-            pred = s.codec.decode(self._domains(z0, B)).float().unflatten(0, (B, len(DOMAINS)))
-            maps = targets_to_maps(pred, DOMAINS, self.p.albedo_space)
-            return {d: maps[d] for d in domains}
-        z_cond = s.codec.encode(x).repeat_interleave(V, 0)
-        ids = torch.tensor([DOMAINS.index(d) for d in domains], device=dev).repeat(B)
-        z0 = s.sample(z_cond, ids, x, V, sp, generator)
-        pred = s.codec.decode(z0).float().unflatten(0, (B, V))
-        return targets_to_maps(pred, domains, self.p.albedo_space)
 
     @torch.no_grad()
     def images(self, batch: dict) -> dict[str, np.ndarray]:

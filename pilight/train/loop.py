@@ -64,6 +64,7 @@ from accelerate import Accelerator
 from accelerate.utils import send_to_device
 from tqdm.auto import tqdm
 
+from pilight.machine import cpu_has_native_bf16
 from pilight.params import TrainParams
 from pilight.train import checkpoint as ckpt
 from pilight.train import sharding
@@ -107,12 +108,6 @@ def _lr_schedule(
         num_warmup_steps=warmup,
         num_training_steps=total,
     )
-
-
-def cpu_has_native_bf16() -> bool:
-    """Whether oneDNN has native bf16 kernels on this CPU (AVX512-BF16 or AMX). Without them CPU
-    autocast still computes in bf16, but by emulation, and a step is slower than in fp32."""
-    return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
 
 
 def resolve_mixed_precision(setting: str, cuda: bool | None = None) -> tuple[str, str]:

@@ -33,7 +33,6 @@ every flat region. With physics_first the same resolution applies to the D and S
 
 from __future__ import annotations
 
-import json
 import warnings
 from collections.abc import Iterable
 from pathlib import Path
@@ -47,31 +46,29 @@ from pilight.data import schema
 from pilight.data.colour import to_uint8
 from pilight.data.schema import DataError
 from pilight.data.shards import make_loader, relight_dataset
-from pilight.diffusion.codec import cell_mean, cell_smooth
+from pilight.diffusion.codec import cell_mean
 from pilight.diffusion.schedule import sample_timesteps, v_to_x0
 from pilight.eval.grids import labelled_grid
-from pilight.params import RelightParams, SamplingParams
+from pilight.models.relight import RelightModel
+from pilight.models.stack import PREVIEW_SAMPLING
+from pilight.params import RelightParams
 from pilight.physics import make_feature_extractor, masked_mse, physics_loss
 from pilight.physics.calculated import diffuse_calculated
 from pilight.relight import physics_first as pf
 from pilight.relight.branches import (
-    branch_layout,
     branch_targets,
-    cond_width,
-    condition_images,
     encode_conditions,
-    physics_first_images,
 )
-from pilight.relight.conditions import PRED_DOMAINS, choose_intrinsics, load_condition_predictions
-from pilight.relight.encoding import gain_decode, gain_encode, tonemap
-from pilight.relight.intensity import BALL_KEYS, relative_pair, to_source_level
+from pilight.relight.conditions import choose_intrinsics, load_condition_predictions
+from pilight.relight.encoding import gain_encode, tonemap
+from pilight.relight.intensity import relative_pair
 from pilight.relight.physics_terms import PHYSICS_SPACE, physics_terms
-from pilight.train.build import PREVIEW_SAMPLING, Stack, build_stack
 from pilight.train.grad_shares import grad_shares
 
 
-class RelightTask:
-    """The stage-2 Task for pilight.train.loop.train."""
+class RelightTask(RelightModel):
+    """The stage-2 Task for pilight.train.loop.train: the inference model (pilight.models.relight) and what
+    training adds to it (batches, the predicted conditions, targets, the loss, the previews)."""
 
     def __init__(
         self,
@@ -83,15 +80,8 @@ class RelightTask:
         device: str = "cpu",
         physics_space: str = PHYSICS_SPACE,
     ):
-        self.p, self.shard_dir, self.seed, self.device = p, Path(shard_dir), seed, device
-        self.physics_first = p.physics_first
-        self.layout = branch_layout(p.decomposition, p.d_calc_condition, p.physics_first)
-        self.with_d_calc = any("d_calc" in maps for maps in self.layout.values())
-        self.branches = tuple(self.layout)
-        self.V = len(self.branches)
-        self.width = cond_width(p.decomposition, p.d_calc_condition, p.physics_first)
-        codec_channels = _latent_channels(p)
-        self.stack: Stack = build_stack(p, num_domains=self.V, cond_channels=self.width * codec_channels)
+        super().__init__(p)
+        self.shard_dir, self.seed, self.device = Path(shard_dir), seed, device
         self.extractor = make_feature_extractor(p.rec_features, p.dinov2_path)
         self.physics_space = physics_space
         self.samples_per_batch = p.train.batch_size
@@ -112,26 +102,16 @@ class RelightTask:
             )
 
     def describe(self) -> dict[str, Any]:
-        return {
-            **self.stack.describe(),
+        return super().describe() | {
             "rec_features": self.extractor.name,
-            "relit_target": self.p.relit_target,
-            "relit_resolution": self.p.relit_resolution,
-            "physics_first": self.physics_first,
-            "albedo_source": self.p.albedo_source if self.physics_first else None,
-            "source_light": self.p.source_light if self.physics_first else None,
-            "specular_anchor": self.p.specular_anchor if self.physics_first else None,
             "physics_space": self.physics_space,
-            "branches": list(self.branches),
             "conditions": self.p.conditions,
-            "condition_maps": {b: list(m) for b, m in self.layout.items()},
-            "d_calc": f"Lambertian lookup of the {self.p.ds_ball} ball x (1 - metallic)",
         }
 
     def trainable(self) -> torch.nn.Module:
         return self.stack.model
 
-    def to(self, device) -> RelightTask:
+    def to(self, device) -> RelightTask:  # the loop places the UNet itself (accelerate)
         if isinstance(self.stack.codec, torch.nn.Module):
             self.stack.codec.to(device)
         self.extractor.to(device)
@@ -155,20 +135,6 @@ class RelightTask:
             return balls["ball_lambertian_b"]
         return balls["ball_b"]
 
-    def _input_offset(self, z_cond: torch.Tensor) -> torch.Tensor | None:
-        """(B * V, C, h, w): z(I_in) on the relit items, 0 on the D/S items; None unless relit_target is residual.
-
-        z(I_in) is read from the relit branch's condition latents (before any CFG drop), so the
-        codec encodes the input once per step, not twice."""
-        if self.p.relit_target != "residual":
-            return None
-        lc = self.stack.codec.latent_channels
-        i, r = self.layout["relit"].index("image"), self.branches.index("relit")
-        per_item = z_cond.unflatten(0, (-1, self.V))
-        offset = torch.zeros_like(per_item[:, :, :lc])
-        offset[:, r] = per_item[:, r, i * lc : (i + 1) * lc]
-        return offset.flatten(0, 1)
-
     def _relit_target(self, y_b: torch.Tensor, y_a: torch.Tensor) -> torch.Tensor:
         """The relit branch's target image (B, 3, H, W) before encoding: y_b, G (gain), cell means."""
         p, cell = self.p, self.stack.codec.factor
@@ -179,67 +145,6 @@ class RelightTask:
             return y_a + cell_mean(y_b - y_a, cell)
         return y_b
 
-    def _relit_from_output(self, y: torch.Tensor, y_a: torch.Tensor) -> torch.Tensor:
-        """Decoded outputs (B, V, 3, H, W) -> the relit branch as an image (gain decoded, cells smoothed)."""
-        p, cell = self.p, self.stack.codec.factor
-        r = self.branches.index("relit")
-        out = y[:, r]
-        if p.relit_target == "gain":
-            out = gain_decode(cell_smooth(out, cell) if p.relit_resolution == "cell" else out, y_a)
-        elif p.relit_resolution == "cell":
-            out = y_a + cell_smooth(out - y_a, cell)
-        else:
-            return y
-        return torch.cat([y[:, :r], out[:, None], y[:, r + 1 :]], dim=1)
-
-    @property
-    def _cell(self) -> int:
-        """Pixels per side of one physics-first output value: the codec cell with relit_resolution cell, else 1."""
-        return self.stack.codec.factor if self.p.relit_resolution == "cell" else 1
-
-    def _conditions(
-        self, batch: dict, intr: dict[str, torch.Tensor], dev, intensity: str | None = None
-    ) -> tuple[dict, pf.Anchors | None, dict[str, torch.Tensor]]:
-        """Condition maps, the physics anchors (physics_first) and the target balls in use, of a pairs batch.
-
-        ``intensity`` (default relight.intensity): relative = the batch's target balls are relative to
-        the input's own light and are scaled to its level (pilight.relight.intensity); absolute = as given."""
-        image_a, mask = batch["image_a"].to(dev), batch["mask"].to(dev)
-        balls = {k: batch[k].to(dev) for k in BALL_KEYS if k in batch}
-        rendered = self.physics_first and self.p.albedo_source == "effective" and self.p.source_light == "rendered"
-        if rendered and "ball_a" not in batch:
-            raise DataError(
-                "relight.source_light is 'rendered' but the batch has no ball_a (the input's own light "
-                "ball): re-shard with this version, or use source_light: estimated (a photo has no ball)"
-            )
-        source = None  # the input's own light: (ball, found), when known or needed
-        if rendered:
-            source = (batch["ball_a"].to(dev), torch.ones(image_a.shape[0], dtype=torch.bool, device=dev))
-        elif (
-            self.physics_first and self.p.albedo_source == "effective" or (intensity or self.p.intensity) == "relative"
-        ):
-            source = pf.source_balls(image_a, intr, mask, balls["ball_b"].shape[-1])
-        if (intensity or self.p.intensity) == "relative":
-            balls = to_source_level(balls, *source)
-        ball_b = balls["ball_b"]
-        if not self.physics_first:
-            return condition_images(image_a, intr, ball_b, mask, self.with_d_calc), None, balls
-        effective = self.p.albedo_source == "effective"
-        anc = pf.anchors(
-            image_a,
-            intr,
-            mask,
-            ball_b,
-            balls.get("ball_lambertian_b"),
-            albedo_source=self.p.albedo_source,
-            ball_a=source[0] if effective else None,
-            lambertian_a=batch["ball_lambertian_a"].to(dev) if rendered and "ball_lambertian_a" in batch else None,
-            smooth_cell=self._cell,
-            specular=self.p.specular_anchor,
-            found=source[1] if effective else None,
-        )
-        return physics_first_images(image_a, intr, ball_b, mask, anc), anc, balls
-
     def _physics_first_targets(self, batch: dict, anc: pf.Anchors, y_a: torch.Tensor, dev) -> torch.Tensor:
         """(B, 3, 3, H, W): relit gain off the mask (0 on it), g_D of D_eff, g_S of S_b (cell means at cell)."""
         mask = batch["mask"].to(dev).float()
@@ -248,17 +153,6 @@ class RelightTask:
         g_d = pf.gain_of(pf.diffuse_target(image_b, spec_b, anc.albedo), anc.d_calc, anc.eps)
         g_s = pf.gain_of(spec_b, anc.s_calc, anc.eps)
         return torch.stack([cell_mean(g, self._cell) for g in (g_r, g_d, g_s)], dim=1)
-
-    def _physics_first_outputs(
-        self, y: torch.Tensor, anc: pf.Anchors, y_a: torch.Tensor, mask: torch.Tensor
-    ) -> dict[str, torch.Tensor]:
-        """Decoded gains (B, 3, 3, H, W) -> linear {relit, diffuse, specular, albedo}: A_x D + S on the mask,
-        the relit branch's gain on the input off it."""
-        g_r, g_d, g_s = (cell_smooth(y[:, i].float(), self._cell) for i in range(3))
-        out = pf.compose_relit(anc, g_d, g_s)
-        off = schema.from_model("image", gain_decode(g_r, y_a))
-        out["relit"] = torch.where(mask > 0.5, out["relit"], off)
-        return out
 
     def loss(
         self, batch: dict, generator: torch.Generator, model: torch.nn.Module | None = None
@@ -350,53 +244,6 @@ class RelightTask:
         return l_v + phys + l_image, logs
 
     @torch.no_grad()
-    def predict(
-        self,
-        batch: dict,
-        sp: SamplingParams,
-        generator: torch.Generator | None = None,
-        intr: dict[str, torch.Tensor] | None = None,
-        *,
-        intensity: str | None = None,
-        zero_gains: bool = False,
-    ) -> dict[str, torch.Tensor]:
-        """Pairs batch -> linear HDR {relit, diffuse, specular} (B, 3, H, W), all branches in one batched pass
-        (+ "albedo", the A_x of I = A_x D + S, with physics_first).
-
-        `intr`: the intrinsics to condition on (default: the batch's ground truth); the mask and
-        the balls always come from the batch. ``intensity`` (default relight.intensity): relative = the
-        batch's target balls are relative balls (level k; pilight.relight.intensity), absolute = as they
-        are. ``zero_gains`` (physics_first only): the physics anchor alone, no network (its baseline)."""
-        s, V = self.stack, self.V
-        dev = next(s.model.parameters()).device
-        intr = {d: (intr or batch)[d].to(dev) for d in PRED_DOMAINS}
-        image_a = batch["image_a"].to(dev)
-        B = image_a.shape[0]
-        maps, anc, _ = self._conditions(batch, intr, dev, intensity)
-        if zero_gains:
-            if anc is None:
-                raise ValueError(
-                    "zero_gains is the physics-first anchor; this model has no anchor (physics_first: false)"
-                )
-            zero = torch.zeros(B, V, 3, *image_a.shape[-2:], device=dev)
-            out = self._physics_first_outputs(zero, anc, maps["image"], batch["mask"].to(dev))
-            return {k: v.clamp(0, schema.HDR_MAX) for k, v in out.items()}
-        z_cond = encode_conditions(s.codec, maps, self.layout, self.width)
-        ids = torch.arange(V, device=dev).repeat(B)
-        z0 = s.sample(z_cond, ids, maps["image"], V, sp, generator)
-        if anc is not None:
-            out = self._physics_first_outputs(
-                s.codec.decode(z0).float().unflatten(0, (B, V)), anc, maps["image"], batch["mask"].to(dev)
-            )
-            return {k: v.clamp(0, schema.HDR_MAX) for k, v in out.items()}
-        offset = self._input_offset(z_cond)
-        if offset is not None:
-            z0 = z0 + offset
-        y = self._relit_from_output(s.codec.decode(z0).float().unflatten(0, (B, V)), maps["image"])
-        # Clamp: model_to_hdr of the top code rounds just above the float16 maximum (inf in an EXR).
-        return {b: schema.from_model("image", y[:, i]).clamp(0, schema.HDR_MAX) for i, b in enumerate(self.branches)}
-
-    @torch.no_grad()
     def images(self, batch: dict) -> dict[str, np.ndarray]:
         """Rows: input | target | relit; then D_calc | D truth | D model and S_calc | S truth | S model
         (the first pair), labelled."""
@@ -416,16 +263,6 @@ class RelightTask:
             rows.append([None, u8(one["specular_b"]), u8(pred["specular"])])
             labels += ["D", "S"]
         return {"relight_grid": labelled_grid(rows, ["input / physics", "truth", "model"], row_labels=labels)}
-
-
-def _latent_channels(p: RelightParams) -> int:
-    """The codec's latent width without building the UNet (pixel: 3 f^2; VAE: from its config)."""
-    if p.codec.kind == "pixel":
-        return 3 * p.codec.factor**2
-    try:
-        return int(json.loads((Path(p.codec.path) / "config.json").read_text()).get("latent_channels", 4))
-    except (OSError, ValueError):
-        return 4  # build_stack then reports the broken VAE folder itself
 
 
 def _trainable(model: torch.nn.Module) -> list[torch.nn.Parameter]:

@@ -38,7 +38,8 @@ def run_training_stage(
     from pilight.base_model import BaseModelError, init_from_base
     from pilight.data.schema import DataError
     from pilight.data.shards import read_index
-    from pilight.train.build import ModelError, check_image_size, save_model
+    from pilight.models.folder import save_model
+    from pilight.models.stack import ModelError, check_image_size
     from pilight.train.checkpoint import CheckpointError, run_identity
     from pilight.train.loop import resolve_mixed_precision, train
 

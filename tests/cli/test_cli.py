@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from pilight.cli import DECOMPOSE_MAPS, main
+from pilight.cli import main
 from pilight.data.exr import read_exr
 from pilight.data.schema import NORMAL_LENGTH_TOL
+from pilight.params import DOMAINS
 
 FAST = ["--resolution", "32", "--device", "cpu"]  # tiny model at 32^2: milliseconds per sample
 
@@ -33,7 +34,7 @@ def test_decompose_writes_every_map_at_the_input_size_with_unit_normals(tmp_path
     rc, err = run(capsys, "decompose", astronaut_png, "-o", out, "--models", tiny_models, *FAST)
     assert rc == 0, err
     folder = out / "astronaut"
-    for m in DECOMPOSE_MAPS:
+    for m in DOMAINS:
         exr = read_exr(folder / f"{m}.exr")
         assert exr.shape[:2] == (512, 512), m
         assert exr.shape[2] == (3 if m in ("albedo", "normal") else 1)

@@ -48,8 +48,8 @@ def test_outputs_at_input_size_and_intrinsics_reused(pipe, astronaut):
 
 def test_stage1_runs_once_for_k_lights(pipe, astronaut, monkeypatch):
     calls = []
-    real = pipe.intrinsics.predict
-    monkeypatch.setattr(pipe.intrinsics, "predict", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = pipe.intrinsics_model.predict
+    monkeypatch.setattr(pipe.intrinsics_model, "predict", lambda *a, **k: calls.append(1) or real(*a, **k))
     pipe.relight(astronaut, [lights.named(n) for n in lights.NAMED])
     assert len(calls) == 1
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from pilight.models.folder import save_model
 from pilight.params import UNetParams, load_section
-from pilight.train.build import save_model
 
 REPO = Path(__file__).resolve().parents[2]
 # Two UNet levels of 8 and 16 channels: a forward pass at 32^2 takes milliseconds.

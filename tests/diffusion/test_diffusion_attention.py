@@ -118,7 +118,7 @@ def test_bf16_is_finite():
 
 def test_errors_are_explicit():
     attn = _attention()
-    with pytest.raises(ValueError, match="batch size 6 is not divisible by num_views 4"):
+    with pytest.raises(ValueError, match="batch size 6 is not divisible by items_per_sample 4"):
         CrossBatchAttnProcessor(4)(attn, torch.randn(6, 5, 32))
     with pytest.raises(ValueError, match="self-attention"):
         CrossBatchAttnProcessor(2)(attn, torch.randn(4, 5, 32), encoder_hidden_states=torch.randn(4, 3, 32))

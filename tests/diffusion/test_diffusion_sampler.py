@@ -21,7 +21,7 @@ def _model(cross_batch=True, views=4, terminal_timestep=None):
         LearnedEmbedding(16),
         DOMAINS,
         COND,
-        num_views=views,
+        items_per_sample=views,
         cross_batch=cross_batch,
         terminal_timestep=terminal_timestep,
     ).eval()
@@ -74,7 +74,7 @@ def test_forward_errors_name_numbers():
         model(x, torch.randn(n, 7, 8, 8), t, ids, ehs)
     with pytest.raises(ValueError, match="domain_ids"):
         model(x, cond, t, ids + 1, ehs)
-    with pytest.raises(ValueError, match="num_views"):
+    with pytest.raises(ValueError, match="items_per_sample"):
         model(x[:3], cond[:3], t[:3], ids[:3], ehs[:3])
     with pytest.raises(ValueError, match=r"cross_attention_dim is 16"):
         DomainDiffusion(model.unet, LearnedEmbedding(8), DOMAINS, COND)
@@ -86,7 +86,7 @@ def test_deterministic_with_seed_and_modes():
     model = _model()
     cond, ids, ehs, _ = _inputs(2, 4)
     run = lambda seed, **kw: sample(
-        model, cond, ids, ehs, num_views=4, generator=torch.Generator().manual_seed(seed), **kw
+        model, cond, ids, ehs, items_per_sample=4, generator=torch.Generator().manual_seed(seed), **kw
     )
     a, b = run(0, steps=3), run(0, steps=3)
     assert a.shape == (8, LATENT, 8, 8) and torch.equal(a, b)
@@ -105,7 +105,7 @@ def test_cfg_groups_cond_and_uncond_separately():
     null = torch.randn_like(ehs)
     s = 3.0
     out = sample(
-        model, cond, ids, ehs, num_views=4, mode="single_step", cfg_scale=s, noise=noise, null_hidden_states=null
+        model, cond, ids, ehs, items_per_sample=4, mode="single_step", cfg_scale=s, noise=noise, null_hidden_states=null
     )
     # reference: two separate (unbatched) calls
     sched = make_train_scheduler()
@@ -122,11 +122,13 @@ def test_ensemble_is_mean_of_members():
     model = _model()
     cond, ids, ehs, n = _inputs(1, 4)
     noise = torch.randn(3 * n, LATENT, 8, 8, generator=torch.Generator().manual_seed(5))
-    out = sample(model, cond, ids, ehs, num_views=4, steps=2, ensemble=3, noise=noise)
-    members = [sample(model, cond, ids, ehs, num_views=4, steps=2, noise=noise[k * n : (k + 1) * n]) for k in range(3)]
+    out = sample(model, cond, ids, ehs, items_per_sample=4, steps=2, ensemble=3, noise=noise)
+    members = [
+        sample(model, cond, ids, ehs, items_per_sample=4, steps=2, noise=noise[k * n : (k + 1) * n]) for k in range(3)
+    ]
     torch.testing.assert_close(out, torch.stack(members).mean(0), atol=1e-5, rtol=1e-5)
     with pytest.raises(ValueError, match="noise must have shape"):
-        sample(model, cond, ids, ehs, num_views=4, ensemble=2, noise=noise)
+        sample(model, cond, ids, ehs, items_per_sample=4, ensemble=2, noise=noise)
 
 
 @pytest.mark.parametrize("cross_batch", [False, True])
@@ -137,10 +139,10 @@ def test_domain_subset_differs_only_by_cross_view_attention(cross_batch):
     model = _model(cross_batch=cross_batch)
     cond, ids, ehs, n = _inputs(1, 4)
     noise = torch.randn(n, LATENT, 8, 8, generator=torch.Generator().manual_seed(7))
-    all4 = sample(model, cond, ids, ehs, num_views=4, steps=2, noise=noise)
-    albedo = sample(model, cond[:1], ids[:1], ehs[:1], num_views=1, steps=2, noise=noise[:1])
+    all4 = sample(model, cond, ids, ehs, items_per_sample=4, steps=2, noise=noise)
+    albedo = sample(model, cond[:1], ids[:1], ehs[:1], items_per_sample=1, steps=2, noise=noise[:1])
     assert albedo.shape == (1, LATENT, 8, 8)
-    assert model.num_views == 4  # the sampler restores the model's grouping
+    assert model.items_per_sample == 4  # the sampler restores the model's grouping
     if cross_batch:
         assert (all4[:1] - albedo).abs().max() > 1e-4
     else:
@@ -154,15 +156,15 @@ def test_model_keeps_installed_attention_and_set_views_is_reversible():
     unet = build_unet(TINY, in_channels=LATENT + COND, out_channels=LATENT, num_domains=DOMAINS)
     set_cross_batch_attention(unet, None)  # the ablation, chosen before the model is built
     model = DomainDiffusion(unet, LearnedEmbedding(16), DOMAINS, COND)
-    assert not model.cross_batch and model.num_views == DOMAINS
+    assert not model.cross_batch and model.items_per_sample == DOMAINS
 
     set_cross_batch_attention(unet, 2)
     model = DomainDiffusion(unet, LearnedEmbedding(16), DOMAINS, COND)
-    assert model.cross_batch and model.num_views == 2
-    model.set_views(1)  # one domain at a time: same math as vanilla, but stays switchable
-    model.set_views(4)
+    assert model.cross_batch and model.items_per_sample == 2
+    model.set_items_per_sample(1)  # one domain at a time: same math as vanilla, but stays switchable
+    model.set_items_per_sample(4)
     assert model.cross_batch
-    assert {p.num_views for p in unet.attn_processors.values() if hasattr(p, "num_views")} == {4}
+    assert {p.items_per_sample for p in unet.attn_processors.values() if hasattr(p, "items_per_sample")} == {4}
 
 
 def test_terminal_input_zero_makes_the_terminal_prediction_deterministic():
@@ -187,7 +189,7 @@ def test_terminal_input_zero_makes_the_terminal_prediction_deterministic():
         cond,
         ids,
         ehs,
-        num_views=4,
+        items_per_sample=4,
         scheduler_config=zero_snr,
         generator=torch.Generator().manual_seed(seed),
         **kw,
@@ -215,15 +217,15 @@ class _OracleV(torch.nn.Module):
     forward process would have produced, v = sqrt(a) eps - sqrt(1-a) x0, eps recovered from x_t.
     At a zero-SNR terminal step (a = 0) x_t is the noise itself, so eps = x_t there too."""
 
-    latent_channels, num_views = LATENT, 1
+    latent_channels, items_per_sample = LATENT, 1
 
     def __init__(self, x0: torch.Tensor, alphas_cumprod: torch.Tensor):
         super().__init__()
         self.x0, self.alphas = x0, alphas_cumprod.double()
         self.anchor = torch.nn.Parameter(torch.zeros(()))  # sample() reads the dtype from parameters
 
-    def set_views(self, views):
-        self.num_views = views
+    def set_items_per_sample(self, views):
+        self.items_per_sample = views
 
     terminal_zero = False  # read 0 instead of x_t at t = T-1 (schedule.terminal_input: zero)
 
@@ -257,7 +259,7 @@ def test_ddim_with_the_exact_v_recovers_x0(zero_snr, spacing, terminal_zero, ste
         cond,
         ids,
         ehs,
-        num_views=DOMAINS,
+        items_per_sample=DOMAINS,
         steps=steps,
         timestep_spacing=spacing,
         generator=torch.Generator().manual_seed(0),
@@ -271,7 +273,7 @@ def test_ddim_with_the_exact_v_recovers_x0(zero_snr, spacing, terminal_zero, ste
             cond,
             ids,
             ehs,
-            num_views=DOMAINS,
+            items_per_sample=DOMAINS,
             mode="single_step",
             scheduler_config=config,
             generator=torch.Generator().manual_seed(0),

@@ -16,9 +16,10 @@ import pytest
 import torch
 
 from pilight.cli import main
+from pilight.models.folder import CHECKSUM_FILE, MODEL_FILE, load_model, save_model
+from pilight.models.stack import ModelError
 from pilight.pipeline import PILightPipeline, PipelineError
 from pilight.train import checkpoint as ckpt
-from pilight.train.build import CHECKSUM_FILE, MODEL_FILE, ModelError, load_model, save_model
 
 FAST = ["--resolution", "32", "--device", "cpu"]
 

@@ -10,7 +10,8 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from pilight.train.build import CHECKSUM_FILE, MODEL_FILE, ModelError, load_model, save_model
+from pilight.models.folder import CHECKSUM_FILE, MODEL_FILE, load_model, save_model
+from pilight.models.stack import ModelError
 
 
 def _stack(width: int = 4, seed: int = 0) -> SimpleNamespace:

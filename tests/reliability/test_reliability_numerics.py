@@ -43,7 +43,7 @@ def _tiny_model():
         up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"),
     )
     unet = build_unet(spec, in_channels=4 + 4, out_channels=4, num_domains=2)
-    return DomainDiffusion(unet, LearnedEmbedding(8), 2, 4, num_views=2, cross_batch=True).eval()
+    return DomainDiffusion(unet, LearnedEmbedding(8), 2, 4, items_per_sample=2, cross_batch=True).eval()
 
 
 @pytest.mark.parametrize("what", ["cond", "ehs"])
@@ -51,10 +51,10 @@ def test_sampler_refuses_a_nan_condition(what):
     model = _tiny_model()
     cond, ehs = torch.randn(4, 4, 8, 8), torch.randn(4, 1, 8)
     ids = torch.arange(2).repeat(2)
-    out = sample(model, cond, ids, ehs, num_views=2, steps=1, generator=torch.Generator().manual_seed(0))
+    out = sample(model, cond, ids, ehs, items_per_sample=2, steps=1, generator=torch.Generator().manual_seed(0))
     assert torch.isfinite(out).all()
     (cond if what == "cond" else ehs)[3].view(-1)[0] = float("nan")
     # Before: exit 0 and an all-NaN output (the NaN spreads through cross-batch attention).
     name = "cond_latents" if what == "cond" else "encoder_hidden_states"
     with pytest.raises(ValueError, match=rf"{name} holds NaN/Inf in 1 item\(s\) \(first: item 3 of 4\)"):
-        sample(model, cond, ids, ehs, num_views=2, steps=1, generator=torch.Generator().manual_seed(0))
+        sample(model, cond, ids, ehs, items_per_sample=2, steps=1, generator=torch.Generator().manual_seed(0))

@@ -127,7 +127,7 @@ def test_the_unet_size_is_estimated_before_anything_is_built(tmp_path):
 def test_the_unet_estimate_is_close_to_the_real_count():
     import torch
 
-    from pilight.train.build import build_stack
+    from pilight.models.stack import build_stack
 
     for channels in ((64, 128, 128), (32, 32)):
         p = P.IntrinsicsParams(unet=P.UNetParams(block_out_channels=channels))

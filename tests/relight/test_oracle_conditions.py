@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from benchmarks.oracle_relight import conditions
-from pilight.relight.conditions import PRED_DOMAINS
+from pilight.params import DOMAINS
 
 CHANNELS = {"albedo": 3, "normal": 3, "roughness": 1, "metallic": 1}
 
@@ -35,11 +35,11 @@ def _pred(preds, d):
     return torch.stack([torch.from_numpy(preds[k][d]).permute(2, 0, 1) for k in ("s0_v00_l00", "s1_v00_l00")])
 
 
-@pytest.mark.parametrize("one", PRED_DOMAINS)
+@pytest.mark.parametrize("one", DOMAINS)
 def test_one_map_from_stage_one_the_rest_ground_truth(batch_and_preds, one):
     b, preds = batch_and_preds
     c = conditions(b, preds, only=one)
-    for d in PRED_DOMAINS:
+    for d in DOMAINS:
         torch.testing.assert_close(c[d], _pred(preds, d) if d == one else b[d])
 
 
@@ -58,6 +58,6 @@ def test_albedo_at_ground_truth_level_keeps_the_pattern_and_takes_the_level(batc
 def test_gt_and_pred_settings(batch_and_preds):
     b, preds = batch_and_preds
     gt, pred = conditions(b, None), conditions(b, preds)
-    for d in PRED_DOMAINS:
+    for d in DOMAINS:
         torch.testing.assert_close(gt[d], b[d])
         torch.testing.assert_close(pred[d], _pred(preds, d))

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from pilight.base_model import BaseModelError, init_from_base
+from pilight.models.folder import save_model, trainable_state
 from pilight.params import IntrinsicsParams
-from pilight.train.build import save_model, trainable_state
 from pilight.train.intrinsics import IntrinsicsTask
 from tests.stage_scripts import TINY_NETWORK
 

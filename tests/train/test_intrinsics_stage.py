@@ -9,8 +9,9 @@ import pytest
 import torch
 
 from pilight.data.shards import intrinsics_dataset, make_loader
+from pilight.models.intrinsics import targets_to_maps
 from pilight.params import DOMAINS, IntrinsicsParams, SamplingParams
-from pilight.train.intrinsics import IntrinsicsTask, domain_targets, latent_mask, masked_latent_mse, targets_to_maps
+from pilight.train.intrinsics import IntrinsicsTask, domain_targets, latent_mask, masked_latent_mse
 from tests.stage_scripts import TINY_NETWORK, params_file, run_stage, tiny_shards, training_outputs
 
 TINY = {
@@ -82,7 +83,7 @@ def test_predict_a_subset_of_domains(shards):
     assert full["roughness"].shape == (2, 1, 16, 16) and full["albedo"].shape == (2, 3, 16, 16)
     assert (full["albedo"] >= 0).all() and (full["albedo"] <= 1).all()
     torch.testing.assert_close(full["normal"].norm(dim=1), torch.ones(2, 16, 16), atol=1e-4, rtol=0)
-    assert task.stack.model.num_views == 4, "a subset call leaves the model's view count as it was"
+    assert task.stack.model.items_per_sample == 4, "a subset call leaves the model's view count as it was"
 
 
 def _params(tmp_path, **intrinsics) -> Path:

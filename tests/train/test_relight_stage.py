@@ -11,9 +11,9 @@ import torch
 from pilight.data.predictions import write_predictions
 from pilight.data.schema import DataError
 from pilight.data.shards import intrinsics_dataset, make_loader, relight_dataset
-from pilight.params import RelightParams, SamplingParams
+from pilight.params import DOMAINS, RelightParams, SamplingParams
 from pilight.relight.branches import encode_conditions
-from pilight.relight.conditions import PRED_DOMAINS, choose_intrinsics
+from pilight.relight.conditions import choose_intrinsics
 from pilight.relight.encoding import tonemap
 from pilight.relight.physics_terms import physics_terms
 from pilight.train.relight import RelightTask
@@ -43,11 +43,11 @@ def preds(shards, tmp_path_factory):
     def items(split):
         for b in make_loader(intrinsics_dataset(shards, split, shuffle=False), 4):
             for i, key in enumerate(b["key"]):
-                maps = {d: b[d][i].numpy().transpose(1, 2, 0) for d in PRED_DOMAINS}
+                maps = {d: b[d][i].numpy().transpose(1, 2, 0) for d in DOMAINS}
                 maps["albedo"] = maps["albedo"] * 0.5
                 yield key, maps, b["meta"][i]
 
-    write_predictions(out, {s: items(s) for s in ("train", "test")}, {"domains": list(PRED_DOMAINS)})
+    write_predictions(out, {s: items(s) for s in ("train", "test")}, {"domains": list(DOMAINS)})
     return out
 
 
@@ -143,7 +143,7 @@ def test_d_calc_condition_adds_the_lookup_of_the_conditioning_normals(shards):
     }
     assert task.width == 5
     b = _batch(shards)
-    intr = {d: b[d] for d in PRED_DOMAINS}
+    intr = {d: b[d] for d in DOMAINS}
     intr["normal"] = -b["normal"]  # conditioning normals, not the ground truth, drive the lookup
     maps = condition_images(b["image_a"], intr, b["ball_b"], b["mask"], with_d_calc=True)
     want = schema.to_model("image", diffuse_calculated(b["ball_b"], -b["normal"], b["mask"], b["metallic"]))
