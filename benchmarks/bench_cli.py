@@ -95,7 +95,7 @@ def main() -> int:
     tmp = None
     models = args.models
     if not trained:
-        from tests.cli.tiny import save_tiny_models
+        from fixtures.tiny_models import save_tiny_models
 
         tmp = tempfile.TemporaryDirectory()
         models = save_tiny_models(Path(tmp.name), unet=None)

@@ -50,11 +50,11 @@ def _train_case(steps: int, size: int, threads: int, q) -> None:
     torch.set_num_threads(threads)
     from pathlib import Path
 
+    from fixtures.fake_renders import write_fake_renders
     from pilight.data.shard_params import ShardParams
     from pilight.data.shards import write_shards
     from pilight.params import load_section
     from pilight.train.relight import RelightTask
-    from tests.data.test_shards import write_fake_renders
 
     tmp = Path(tempfile.mkdtemp())
     write_shards(write_fake_renders(tmp / "r", size=size, ball=64), tmp / "s", ShardParams(), seed=0)

@@ -61,7 +61,7 @@ PERSISTED = {
 
 def micro_project(d: Path) -> dict:
     sys.path.insert(0, str(ROOT))
-    from tests.micro_project import make_micro_project
+    from fixtures.micro_project import make_micro_project
 
     return make_micro_project(d, train={"steps": 12})  # long enough to be killed mid-training
 
@@ -108,7 +108,7 @@ def cli_setup(d: Path) -> tuple[list[str], dict]:
     from PIL import Image
 
     sys.path.insert(0, str(ROOT))
-    from tests.cli.tiny import save_tiny_models
+    from fixtures.tiny_models import save_tiny_models
 
     models = save_tiny_models(d / "cli_models")
     photos = d / "cli_photos"

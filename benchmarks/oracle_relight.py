@@ -60,7 +60,7 @@ from pilight.params import DOMAINS
 from pilight.physics.calculated import diffuse_calculated, specular_calculated
 from pilight.physics.source_light import estimate_source_ball
 from pilight.physics.specular_model import specular_from_ball
-from pilight.relight.conditions import choose_intrinsics, optional_predictions
+from pilight.relight.conditions import optional_predictions, oracle_conditions
 from pilight.relight.encoding import gain_decode, gain_encode
 from pilight.relight.physics_first import anchors, compose_relit, diffuse_target, gain_of
 
@@ -165,23 +165,6 @@ def tier_forms(b: dict, c: dict) -> dict[str, dict[str, torch.Tensor]]:
     return out
 
 
-def conditions(
-    b: dict, preds: dict | None, *, only: str | None = None, at_gt_level: bool = False
-) -> dict[str, torch.Tensor]:
-    """Ground truth (preds None) or stage-1 predictions; ``only``: that map from stage 1 and the rest
-    ground truth; ``at_gt_level``: the albedo rescaled per image and channel to the truth's mean on
-    the mask (its pattern kept, its level the truth's)."""
-    c = choose_intrinsics(b, torch.full((len(b["meta_a"]),), preds is not None), preds)
-    if only is not None:
-        c = {d: (c[d] if d == only else b[d].clone()) for d in c}
-    if at_gt_level:
-        inside = (b["mask"] > 0.5).float()
-        truth = (b["albedo"].float() * inside).sum((2, 3), keepdim=True)
-        pred = (c["albedo"].float() * inside).sum((2, 3), keepdim=True).clamp_min(1e-6)
-        c["albedo"] = c["albedo"] * (truth / pred)
-    return c
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--shards", type=Path, default=Path("data/shards"))
@@ -194,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     preds = optional_predictions(args.shards, args.pred, args.split, "oracle") if args.pred else None
     if args.per_map and preds is None:
         ap.error(f"--per-map needs stage-1 predictions, and none were found under --pred {args.pred}")
-    # name -> (predictions or None for ground truth, conditions()'s options)
+    # name -> (predictions or None for ground truth, oracle_conditions()'s options)
     settings = {"gt": (None, {})} | ({"pred": (preds, {})} if preds is not None else {})
     if args.per_map:
         settings |= {f"pred {d}": (preds, {"only": d}) for d in DOMAINS}
@@ -212,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
         pairs += int(cross.sum())
         u_in, u_gt, mask = tonemap01(b["image_a"]), tonemap01(b["image_b"]), b["mask"]
         for setting, (p, options) in settings.items():
-            c = conditions(b, p, **options)
+            c = oracle_conditions(b, p, **options)
             if args.tiers:
                 forms = {
                     f"{tier}: {k}": scaled_to(v, b["image_b"].float(), mask) if tier == "scale_invariant" else v

@@ -1,5 +1,5 @@
 """A real photo relit from the left and from the right: does the light follow, and does the photo keep its
-detail and exposure? (The figures of tests/cli/test_light_flip.py, printed.)
+detail and exposure? (The figures of tests/cli/test_light_flip.py, printed; pilight.eval.photo_measures.)
 
     python benchmarks/photo_relight.py [--models DIR] [--photo FILE] [--intensity 1] [--absolute] [--exposure photo|light]
 
@@ -21,7 +21,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from tests.cli.test_light_flip import LUMINANCE, detail, lr_asymmetry  # noqa: E402
+from pilight.eval.photo_measures import detail, exposure, lr_asymmetry  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -56,9 +56,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"exposure: {args.exposure}")
     print("| light | asymmetry | detail ratio | exposure ratio | exposure gain |\n|---|---|---|---|---|")
     for light, relit, gain in zip(ls, out.relit, out.exposure_gain):
-        exposure = float((relit @ LUMINANCE).mean() / (rgb @ LUMINANCE).mean())
         print(
-            f"| {light.name} | {lr_asymmetry(relit):+.3f} | {detail(relit) / detail(rgb):.2f} | {exposure:.2f} "
+            f"| {light.name} | {lr_asymmetry(relit):+.3f} | {detail(relit) / detail(rgb):.2f} | {exposure(relit, rgb):.2f} "
             f"| {gain:.2f} |"
         )
     print(f"{seconds:.2f} s for both lights (one relight call, stage 1 once) on {machine.one_line()}")

@@ -10,7 +10,7 @@ import sys
 import pytest
 import yaml
 
-from tests.micro_project import make_micro_project
+from fixtures.micro_project import make_micro_project
 
 pytestmark = pytest.mark.slow
 

@@ -11,8 +11,8 @@ import tomllib
 import pytest
 import yaml
 
+from fixtures.stage_scripts import REPO
 from pilight import seeds
-from tests.stage_scripts import REPO
 
 # Two-sided 95% Student-t quantiles, from printed tables (and scipy.stats.t.ppf(0.975, df))
 T95 = {1: 12.7062047, 2: 4.30265273, 4: 2.77644511, 9: 2.26215716, 30: 2.04227246}

@@ -1,4 +1,4 @@
-"""End to end: `python -m pilight.seeds` in a micro project (tests/micro_project.py), 2 seeds x 2 arms
+"""End to end: `python -m pilight.seeds` in a micro project (fixtures/micro_project.py), 2 seeds x 2 arms
 up to train_intrinsics (one training step: the cheapest seeded stage with metrics), on one render."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from tests.micro_project import make_micro_project
+from fixtures.micro_project import make_micro_project
 
 pytestmark = pytest.mark.slow
 

@@ -6,11 +6,11 @@ from pathlib import Path
 
 import pytest
 
+from fixtures.stage_scripts import REPO
 from pilight.data.schema import DataError
 from pilight.failure import CommandFailure
 from pilight.params import load_section
 from pilight.stage_cli import fails_on, run_stage
-from tests.stage_scripts import REPO
 
 PARAMS = REPO / "params.yaml"
 

@@ -11,9 +11,9 @@ from types import SimpleNamespace
 import pytest
 import yaml
 
+from fixtures.stage_scripts import REPO, params_file
 from pilight.params import BaseParams, load_section
 from pilight.train.checkpoint import run_identity
-from tests.stage_scripts import REPO, params_file
 
 AFTER_SHARDS = {"train_intrinsics", "infer_intrinsics", "train_relight", "relight", "trade"}
 

@@ -78,3 +78,21 @@ def choose_intrinsics(batch: dict, use_pred: torch.Tensor, preds: dict | None) -
         for d in DOMAINS:
             out[d][i] = torch.from_numpy(preds[key][d]).permute(2, 0, 1).to(out[d])
     return out
+
+
+def oracle_conditions(
+    b: dict, preds: dict | None, *, only: str | None = None, at_gt_level: bool = False
+) -> dict[str, torch.Tensor]:
+    """The conditions of an oracle study (benchmarks/oracle_relight.py): ground truth (preds None) or
+    stage-1 predictions; ``only``: that map from stage 1 and the rest
+    ground truth; ``at_gt_level``: the albedo rescaled per image and channel to the truth's mean on
+    the mask (its pattern kept, its level the truth's)."""
+    c = choose_intrinsics(b, torch.full((len(b["meta_a"]),), preds is not None), preds)
+    if only is not None:
+        c = {d: (c[d] if d == only else b[d].clone()) for d in c}
+    if at_gt_level:
+        inside = (b["mask"] > 0.5).float()
+        truth = (b["albedo"].float() * inside).sum((2, 3), keepdim=True)
+        pred = (c["albedo"].float() * inside).sum((2, 3), keepdim=True).clamp_min(1e-6)
+        c["albedo"] = c["albedo"] * (truth / pred)
+    return c

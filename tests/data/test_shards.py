@@ -18,6 +18,7 @@ import torch
 import webdataset as wds
 from pydantic import ValidationError
 
+from fixtures.fake_renders import write_fake_renders
 from pilight.data import layout
 from pilight.data.exr import read_exr, write_exr
 from pilight.data.pairs import read_pairs
@@ -35,75 +36,7 @@ from pilight.data.shards import (
 from pilight.data.splits import SplitError, read_split
 
 REPO = Path(__file__).resolve().parents[2]
-SCENES = [("train_0000", 2, 3), ("train_0001", 1, 3), ("val_0000", 1, 2), ("test_0000", 2, 2)]
 SEED = 7
-
-
-def write_fake_renders(root: Path, scenes=SCENES, size: int = 16, ball: int = 8, seed: int = 0) -> Path:
-    """A render folder per layout.py with random but valid maps; image = albedo * diffuse + specular."""
-    rng = np.random.default_rng(seed)
-    manifest = {"blender_version": "5.0.1", "resolution": size, "scenes": []}
-    for sid, views, lights in scenes:
-        split = sid.split("_")[0]
-        hdris = [None if i % 2 else f"hdri{i}_{split}" for i in range(lights)]
-        manifest["scenes"].append(
-            {
-                "id": sid,
-                "kind": "object",
-                "split": split,
-                "views": views,
-                "lights": lights,
-                "hdris": sorted({h for h in hdris if h}),
-            }
-        )
-        cams = [
-            {"view": v, "world_from_camera": np.eye(4).tolist(), "K": np.eye(3).tolist(), "lens_mm": 50.0}
-            for v in range(views)
-        ]
-        # As the render stage writes it: lights are sampled per view, so a list per view.
-        lts = [
-            [
-                {
-                    "light": i,
-                    "points": [{"power": 10.0 + v}],
-                    "hdri": {"name": hdris[i], "strength": 1.0, "rotation_deg": 30.0} if hdris[i] else None,
-                    "ambient": 0.1,
-                }
-                for i in range(lights)
-            ]
-            for v in range(views)
-        ]
-        (root / sid).mkdir(parents=True)
-        (root / sid / "scene.json").write_text(json.dumps({"seed": 1, "cameras": cams, "lights": lts}))
-        for v in range(views):
-            mask = (rng.random((size, size, 1)) > 0.2).astype(np.float32)
-            n = rng.normal(size=(size, size, 3))
-            normal = n / np.linalg.norm(n, axis=-1, keepdims=True) * mask
-            albedo = rng.random((size, size, 3), dtype=np.float32)
-            view_maps = {
-                "albedo": albedo,
-                "normal": normal,
-                "mask": mask,
-                "roughness": rng.random((size, size, 1)),
-                "metallic": rng.random((size, size, 1)),
-            }
-            for name, arr in view_maps.items():
-                write_exr(layout.map_path(root, sid, v, name), arr, half=name not in layout.FLOAT32_MAPS)
-            for li in range(lights):
-                d = rng.random((size, size, 3), dtype=np.float32) * 4
-                s = rng.random((size, size, 3), dtype=np.float32) * 0.5
-                maps = {
-                    "image": albedo * d + s,
-                    "diffuse": d,
-                    "specular": s,
-                    "ball": rng.random((ball, ball, 3)) * 2,
-                    "ball_lambertian": rng.random((ball, ball, 3)),
-                }
-                for name, arr in maps.items():
-                    write_exr(layout.map_path(root, sid, v, name, li), arr, half=name not in layout.FLOAT32_MAPS)
-            (layout.view_dir(root, sid, v) / layout.DONE_MARKER).touch()
-    (root / "manifest.json").write_text(json.dumps(manifest))
-    return root
 
 
 @pytest.fixture

@@ -4,8 +4,8 @@ import pytest
 import torch
 from diffusers.models.attention_processor import Attention, AttnProcessor2_0
 
+from fixtures.tiny_unet import tiny_diffusers_unet
 from pilight.diffusion.attention import CrossBatchAttnProcessor, set_cross_batch_attention
-from tests.diffusion.tiny_unet import tiny_diffusers_unet
 
 
 def _tiny_unet():

@@ -3,12 +3,12 @@
 import pytest
 import torch
 
+from fixtures.tiny_unet import TINY
 from pilight.diffusion.conditioning import LearnedEmbedding
 from pilight.diffusion.model import DomainDiffusion
 from pilight.diffusion.sampler import sample
 from pilight.diffusion.schedule import make_train_scheduler
 from pilight.diffusion.unet import build_unet
-from tests.diffusion.tiny_unet import TINY
 
 LATENT, COND, DOMAINS = 4, 6, 4
 

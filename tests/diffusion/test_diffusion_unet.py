@@ -4,8 +4,8 @@ import pytest
 import torch
 from diffusers import UNet2DConditionModel
 
+from fixtures.tiny_unet import TINY, tiny_diffusers_unet
 from pilight.diffusion.unet import PAPER_UNET_SPEC, UNetSpec, build_unet, load_pretrained_unet
-from tests.diffusion.tiny_unet import TINY, tiny_diffusers_unet
 
 
 def test_build_unet_domain_embedding():

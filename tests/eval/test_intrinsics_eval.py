@@ -8,11 +8,11 @@ import json
 import pytest
 import torch
 
+from fixtures.fake_predictions import write_intrinsics_predictions
+from fixtures.stage_scripts import tiny_shards
 from pilight.data.shards import intrinsics_dataset, make_loader
 from pilight.eval.intrinsics import MEDIAN_BINS, evaluate_intrinsics, median_from_counts, train_constants
 from pilight.eval.metrics import PSNR_CAP
-from tests.eval.fake_predictions import write_intrinsics_predictions
-from tests.stage_scripts import tiny_shards
 
 
 @pytest.fixture(scope="module")

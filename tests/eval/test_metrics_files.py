@@ -7,10 +7,9 @@ import math
 
 import pytest
 
+from fixtures.fake_predictions import fake_relit, write_intrinsics_predictions, write_relit
+from fixtures.stage_scripts import REPO, params_file, run_stage, tiny_shards
 from pilight.eval.metrics_files import STAGE1, TIER_KEYS, headline, numbers_only
-from tests.eval.fake_predictions import write_intrinsics_predictions, write_relit
-from tests.eval.test_relight_tiers import _relit
-from tests.stage_scripts import REPO, params_file, run_stage, tiny_shards
 
 
 def test_numbers_only_drops_missing_figures_and_refuses_notes():
@@ -46,7 +45,7 @@ def test_headline_takes_the_model_and_the_strongest_baseline_of_each_tier():
 def test_the_stage_writes_numbers_only_and_a_headline_beside_them(tmp_path):
     shards = tiny_shards(tmp_path)
     write_intrinsics_predictions(shards, tmp_path / "pred")
-    write_relit(shards, tmp_path / "relit", _relit)
+    write_relit(shards, tmp_path / "relit", fake_relit)
     metrics = tmp_path / "m" / "evaluate_heldout.json"
     r = run_stage(
         "evaluate.py",

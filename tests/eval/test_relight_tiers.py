@@ -9,6 +9,8 @@ import json
 import pytest
 import torch
 
+from fixtures.fake_predictions import LOG_SCALE, fake_relit, write_relit
+from fixtures.stage_scripts import tiny_shards
 from pilight.data.predictions import read_predictions, write_predictions
 from pilight.data.schema import DataError
 from pilight.data.shards import eval_dataset, make_loader
@@ -25,10 +27,6 @@ from pilight.eval.relight_tiers import (
     tier_image,
 )
 from pilight.physics.envmap import BALL_ALBEDO
-from tests.eval.fake_predictions import write_relit
-from tests.stage_scripts import tiny_shards
-
-LOG_SCALE = 0.3  # the absolute-mode model's level error: exp(+-0.3) by pair parity
 
 
 @pytest.fixture(scope="module")
@@ -83,21 +81,8 @@ def test_strongest_baseline_is_a_baseline_never_an_oracle():
     assert kinds["exposure_matched_copy"] == "baseline" and kinds["model_gt"] == kinds["anchor_gt"] == "oracle"
 
 
-def _relit(suffix: str, b: dict, i: int) -> torch.Tensor:
-    """The fake relight stage: the model exact in relative mode and off by exp(+-LOG_SCALE) per pair in
-    absolute mode; the relative anchor is the exposure-matched copy; everything else copies the input."""
-    if suffix == "":
-        return b["image_b"][i]
-    if suffix == "_abs":
-        return b["image_b"][i] * torch.tensor(LOG_SCALE if i % 2 else -LOG_SCALE).exp()
-    if suffix == "_anchor":
-        r = intensity_ratio(b["ball_a"][i : i + 1], b["ball_b"][i : i + 1])[0]
-        return b["image_a"][i] * r
-    return b["image_a"][i]
-
-
 def test_three_tiers_on_prediction_folders_known_by_construction(shards, tmp_path):
-    relit = write_relit(shards, tmp_path / "relit", _relit)
+    relit = write_relit(shards, tmp_path / "relit", fake_relit)
     out = evaluate_relight(shards, relit, "test", grid_pairs=2)
     grid = out.pop("grid")
     assert grid.ndim == 3 and grid.dtype.name == "uint8"
@@ -123,7 +108,7 @@ def test_three_tiers_on_prediction_folders_known_by_construction(shards, tmp_pat
 
 
 def test_report_has_a_table_per_tier_and_says_its_space(shards, tmp_path):
-    write_relit(shards, tmp_path / "relit", _relit)
+    write_relit(shards, tmp_path / "relit", fake_relit)
     metrics, md, _ = relight_report(shards, tmp_path / "relit")
     assert md.count("| method | kind | PSNR") == 3 and "exposure-matched copy: input x r" in md
     assert "linear HDR on the mask" in md and "Strongest baseline" in md
@@ -131,18 +116,18 @@ def test_report_has_a_table_per_tier_and_says_its_space(shards, tmp_path):
 
 
 def test_only_the_model_splits_are_required(shards, tmp_path):
-    write_relit(shards, tmp_path / "relit", _relit, splits=("", "_abs"))
+    write_relit(shards, tmp_path / "relit", fake_relit, splits=("", "_abs"))
     out = evaluate_relight(shards, tmp_path / "relit", "test")
     assert set(out["relative"]) == {"model", "copy_input", "exposure_matched_copy"}
-    write_relit(shards, tmp_path / "old", _relit, splits=("", "_gt"))  # a folder from before relative intensity
+    write_relit(shards, tmp_path / "old", fake_relit, splits=("", "_gt"))  # a folder from before relative intensity
     with pytest.raises(DataError, match="no `test_abs` split"):
         evaluate_relight(shards, tmp_path / "old", "test")
 
 
 def test_a_split_short_of_a_cross_light_pair_is_an_error(shards, tmp_path):
-    write_relit(shards, tmp_path / "short", _relit, cross_only=("_anchor",))  # identity pairs all absent: fine
+    write_relit(shards, tmp_path / "short", fake_relit, cross_only=("_anchor",))  # identity pairs all absent: fine
     assert "reconstruction_psnr" not in evaluate_relight(shards, tmp_path / "short", "test")["relative"]["anchor"]
-    relit = write_relit(shards, tmp_path / "relit", _relit)
+    relit = write_relit(shards, tmp_path / "relit", fake_relit)
     splits = {s: read_predictions(relit, s) for s in json.loads((relit / "index.json").read_text())["splits"]}
     keys = [k for b in make_loader(eval_dataset(shards, "test", "relight"), 8) for k in b["key"]]
     cross = next(k for k in keys if k.split("_to_")[0][-3:] != k.split("_to_")[1])  # ..._l00_to_l01

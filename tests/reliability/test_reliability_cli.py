@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from fixtures.stage_scripts import REPO, stage_env
 from pilight import cli
 from pilight.cli import main
 from pilight.data.exr import write_exr
-from tests.stage_scripts import REPO, stage_env
 
 FAST = ["--resolution", "32", "--device", "cpu"]
 

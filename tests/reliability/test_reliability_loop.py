@@ -115,7 +115,7 @@ def test_a_diverging_stage_stops_and_saves_no_model(tmp_path, capsys):
     steps. Before: exit 0 and the diverged model saved to models/."""
     import importlib.util
 
-    from tests.stage_scripts import REPO, params_file, tiny_shards, training_outputs
+    from fixtures.stage_scripts import REPO, params_file, tiny_shards, training_outputs
 
     shards = tiny_shards(tmp_path)
     train = {"steps": 30, "batch_size": 2, "checkpoint_every": 100, "image_every": 100, "log_every": 1}

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.render.test_render_stage import run_stage, tree_digest, write_params
+from fixtures.render_stage import run_stage, tree_digest, write_params
 
 pytestmark = pytest.mark.slow  # two tiny Blender renders (8 and 4 bundles at 32^2)
 

@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 from accelerate.state import AcceleratorState
 
+from fixtures.stage_scripts import REPO, params_file, tiny_shards, training_outputs
 from pilight.data.shards import read_index
-from tests.stage_scripts import REPO, params_file, tiny_shards, training_outputs
 
 TINY = {
     "unet": {

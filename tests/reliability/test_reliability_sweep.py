@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 import yaml
 
+from fixtures.fake_renders import write_fake_renders
 from pilight import atomic
-from tests.data.test_shards import write_fake_renders
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -6,11 +6,11 @@ from __future__ import annotations
 import pytest
 import torch
 
+from fixtures.relight_pairs import ONE_STEP, physics_pair, tiny_relight_task
 from pilight.physics.calculated import diffuse_calculated
 from pilight.physics.envmap import light_level
 from pilight.relight import physics_first as pf
 from pilight.relight.intensity import relative_light, relative_pair, to_source_level
-from tests.relight.test_physics_first import ONE_STEP, _pair, _task
 
 GGX = {"specular_anchor": "ggx"}
 
@@ -35,8 +35,8 @@ def test_albedo_level_cancels_in_relative_mode_on_diffuse_pixels(tmp_path, specu
     its own). With `ggx` the input's own estimated highlight S_a (F0 = 0.04 whatever the albedo, at the
     estimated light's level) is subtracted before A_eff and does not cancel: 2.3% of A_x D on average over
     the lit pixels of this 0.5-rough sphere. The absolute relight doubles in both."""
-    task = _task(tmp_path, specular_anchor=specular)
-    b = _pair()
+    task = tiny_relight_task(tmp_path, specular_anchor=specular)
+    b = physics_pair()
     lit = _diffuse_lit(b)
     diffuse_part = lambda out: out["relit"] - out["specular"]  # A_x D on the mask
     rel1, rel2 = (diffuse_part(_relit(task, b, s, "relative")) for s in (1.0, 2.0))
@@ -49,8 +49,8 @@ def test_albedo_level_cancels_in_relative_mode_on_diffuse_pixels(tmp_path, specu
 def test_the_dielectric_highlight_does_not_cancel(tmp_path):
     """S_calc (GGX, F0 = 0.04 whatever the albedo) follows the estimated light's level: with twice the albedo
     the relative relight's specular part halves while its diffuse part stays."""
-    task = _task(tmp_path, specular_anchor="ggx")
-    b = _pair()
+    task = tiny_relight_task(tmp_path, specular_anchor="ggx")
+    b = physics_pair()
     b["roughness"] = torch.full_like(b["roughness"], 0.2)  # a visible highlight
     one, two = _relit(task, b, 1.0, "relative"), _relit(task, b, 2.0, "relative")
     m = (b["mask"] > 0.5).expand(-1, 3, -1, -1) & (one["specular"] > 1e-3)
@@ -60,7 +60,7 @@ def test_the_dielectric_highlight_does_not_cancel(tmp_path):
 
 
 def test_relative_pair_tells_the_model_r():
-    b = _pair()
+    b = physics_pair()
     rel = relative_pair(b)
     r = light_level(b["ball_b"]) / light_level(b["ball_a"])
     torch.testing.assert_close(light_level(rel["ball_b"]), r)
@@ -69,7 +69,7 @@ def test_relative_pair_tells_the_model_r():
 
 
 def test_relative_light_keeps_shape_and_colour_and_sets_the_level():
-    ball = _pair()["ball_b"] * torch.tensor([1.0, 0.8, 0.6]).view(1, 3, 1, 1)
+    ball = physics_pair()["ball_b"] * torch.tensor([1.0, 0.8, 0.6]).view(1, 3, 1, 1)
     rel = relative_light(ball, torch.tensor([1.0, 2.5]))
     torch.testing.assert_close(light_level(rel).flatten(), torch.tensor([1.0, 2.5]))
     torch.testing.assert_close(rel[0] / rel[0].amax(), ball[0] / ball[0].amax())  # shape and colour kept
@@ -84,8 +84,8 @@ def test_own_light_at_k1_returns_the_photo(tmp_path):
     tolerance the anchor achieves: the mean error is 1.1% of the mean on the mask, the largest 5.8% of a
     lit pixel's value. Not exact because A_eff blends in eps_a A_c, and A_c D_a (the SH estimate) differs
     from the render by the estimate's misfit. Off the mask the photo is untouched."""
-    task = _task(tmp_path, specular_anchor="ggx")
-    b = _pair()
+    task = tiny_relight_task(tmp_path, specular_anchor="ggx")
+    b = physics_pair()
     intr = {k: b[k] for k in ("albedo", "normal", "metallic", "roughness")}
     own, found = pf.source_balls(b["image_a"], intr, b["mask"], b["ball_b"].shape[-1])
     assert bool(found.all())

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from benchmarks.oracle_relight import conditions
 from pilight.params import DOMAINS
+from pilight.relight.conditions import oracle_conditions
 
 CHANNELS = {"albedo": 3, "normal": 3, "roughness": 1, "metallic": 1}
 
@@ -38,7 +38,7 @@ def _pred(preds, d):
 @pytest.mark.parametrize("one", DOMAINS)
 def test_one_map_from_stage_one_the_rest_ground_truth(batch_and_preds, one):
     b, preds = batch_and_preds
-    c = conditions(b, preds, only=one)
+    c = oracle_conditions(b, preds, only=one)
     for d in DOMAINS:
         torch.testing.assert_close(c[d], _pred(preds, d) if d == one else b[d])
 
@@ -47,7 +47,7 @@ def test_albedo_at_ground_truth_level_keeps_the_pattern_and_takes_the_level(batc
     b, preds = batch_and_preds
     inside = b["mask"] > 0.5
     for only, others_from_pred in (("albedo", False), (None, True)):
-        c = conditions(b, preds, only=only, at_gt_level=True)
+        c = oracle_conditions(b, preds, only=only, at_gt_level=True)
         mean = lambda x: (x * inside).sum((2, 3)) / inside.sum((2, 3))
         torch.testing.assert_close(mean(c["albedo"]), mean(b["albedo"]))
         ratio = c["albedo"] / _pred(preds, "albedo")  # one factor per image and channel
@@ -57,7 +57,7 @@ def test_albedo_at_ground_truth_level_keeps_the_pattern_and_takes_the_level(batc
 
 def test_gt_and_pred_settings(batch_and_preds):
     b, preds = batch_and_preds
-    gt, pred = conditions(b, None), conditions(b, preds)
+    gt, pred = oracle_conditions(b, None), oracle_conditions(b, preds)
     for d in DOMAINS:
         torch.testing.assert_close(gt[d], b[d])
         torch.testing.assert_close(pred[d], _pred(preds, d))

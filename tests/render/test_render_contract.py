@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fixtures.render_scenes import controlled_spec, interior, point_light, principled, sphere, tiny_params
 from pilight.data import layout
 from pilight.data.exr import read_exr
-from tests.render.conftest import controlled_spec, point_light, principled, sphere, tiny_params
 
 pytestmark = pytest.mark.slow
 
@@ -37,16 +37,6 @@ def _maps(root, light=None):
     return {n: read_exr(layout.map_path(root, "train_0000", 0, n, light)) for n in names}
 
 
-def _interior(mask: np.ndarray) -> np.ndarray:
-    """Mask pixels whose 8 neighbours are also on the mask (away from silhouettes)."""
-    m = mask[..., 0] > 0.5
-    inner = m.copy()
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            inner &= np.roll(np.roll(m, dy, 0), dx, 1)
-    return inner
-
-
 @pytest.mark.parametrize("light", [0, 1])
 def test_image_equals_albedo_times_diffuse_plus_specular(two_spheres, light):
     root, _ = two_spheres
@@ -74,7 +64,7 @@ def test_specular_is_the_sum_of_the_non_diffuse_passes(two_spheres, light):
 def test_diffuse_colour_is_a_scalar_share_of_base_colour(two_spheres):
     """Cycles' Diffuse Color = k * Base Color with one k per pixel (the contract's premise)."""
     root, raw = two_spheres
-    inner = _interior(_maps(root)["mask"])
+    inner = interior(_maps(root)["mask"])
     ratio = raw[0]["Diffuse Color"][inner] / np.asarray(RED)
     assert inner.sum() > 50
     np.testing.assert_allclose(ratio, np.repeat(ratio.mean(axis=1, keepdims=True), 3, axis=1), rtol=1e-4)
@@ -84,7 +74,7 @@ def test_diffuse_colour_is_a_scalar_share_of_base_colour(two_spheres):
 def test_constant_material_values_are_exact_on_interior_pixels(two_spheres):
     root, _ = two_spheres
     view = _maps(root)
-    inner = _interior(view["mask"])
+    inner = interior(view["mask"])
     np.testing.assert_allclose(view["albedo"][inner], np.broadcast_to(RED, (inner.sum(), 3)), atol=1e-5)
     np.testing.assert_allclose(view["roughness"][inner], 0.4, atol=1e-3)  # float16 on disk
     np.testing.assert_allclose(view["metallic"][inner], 0.3, atol=1e-3)
@@ -103,7 +93,7 @@ def test_mask_excludes_glass_and_background(two_spheres):
 def test_normals_unit_camera_space(two_spheres):
     root, _ = two_spheres
     view = _maps(root)
-    n, inner = view["normal"], _interior(view["mask"])
+    n, inner = view["normal"], interior(view["mask"])
     np.testing.assert_allclose(np.linalg.norm(n[inner], axis=-1), 1.0, atol=1e-3)
     assert (n[inner][:, 2] > 0).all(), "z points toward the camera on visible surfaces"
     assert (n[view["mask"][..., 0] == 0] == 0).all()
@@ -208,7 +198,7 @@ def test_shared_pattern_drives_colour_roughness_and_metal_together(tmp_path, bpy
     }
     bpy_render(controlled_spec([sphere(material, scale=1.2)], [point_light((4.0, -3.0, 1.0))]), tmp_path)
     view = _maps(tmp_path)
-    inner = _interior(view["mask"])
+    inner = interior(view["mask"])
     w = view["metallic"][inner][:, :1]
     assert (w < 0.01).mean() > 0.1 and (w > 0.99).mean() > 0.1, "both sub-materials are visible"
     np.testing.assert_allclose(view["albedo"][inner], (1 - w) * np.asarray(a) + w * np.asarray(b), atol=2e-3)
@@ -234,6 +224,6 @@ def test_camera_backdrop_is_the_same_behind_the_scene_for_every_light_while_the_
     corners[:4, :4] = corners[:4, -4:] = True  # far from the sphere: no pixel-filter bleed
     np.testing.assert_allclose(a[corners], 0.1, rtol=1e-3)
     np.testing.assert_array_equal(a[corners], b[corners])
-    inside = _interior(view["mask"])
+    inside = interior(view["mask"])
     assert b[inside].mean() > 1.5 * a[inside].mean()  # the brighter HDRI (and ambient) light the sphere more
     assert background.any()

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import os
 import signal
 import subprocess
@@ -11,52 +10,11 @@ import time
 from pathlib import Path
 
 import pytest
-import yaml
 
-from tests.stage_scripts import stage_env
+from fixtures.render_stage import ROOT, run_stage, stage_args, tree_digest, write_params
+from fixtures.stage_scripts import stage_env
 
-ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.slow
-
-TINY_RENDER = {
-    "resolution": 32,
-    "scenes": {"train": 2, "val": 0, "test": 1},
-    "views_per_scene": 1,
-    "lights_per_view": 2,
-    "cycles": {"samples": 8, "adaptive_min_samples": 4},
-}
-
-
-def write_params(path: Path, **render_overrides) -> Path:
-    path.write_text(yaml.safe_dump({"base": {"seed": 42}, "render": {**TINY_RENDER, **render_overrides}}))
-    return path
-
-
-def stage_args(params: Path, out: Path) -> list[str]:
-    return [
-        sys.executable,
-        str(ROOT / "stages" / "render.py"),
-        "--params",
-        str(params),
-        "--out",
-        str(out),
-        "--log",
-        str(out.parent / f"{out.name}.blender.log"),
-    ]
-
-
-def run_stage(params: Path, out: Path, **kw) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        stage_args(params, out), capture_output=True, text=True, cwd=ROOT, timeout=600, env=stage_env(), **kw
-    )
-
-
-def tree_digest(root: Path) -> dict[str, str]:
-    return {
-        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-        for p in sorted(root.rglob("*"))
-        if p.is_file()
-    }
 
 
 @pytest.fixture(scope="module")

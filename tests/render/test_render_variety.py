@@ -9,13 +9,11 @@ import math
 import numpy as np
 import pytest
 
+from fixtures.render_scenes import controlled_spec, euler_xyz, interior, point_light, principled, sphere, tiny_params
 from pilight.data import layout
 from pilight.data.exr import read_exr
 from pilight.render.material_classes import pattern_material
 from pilight.render.spec import SKY_IRRADIANCE, SKY_MODEL
-from tests.render.conftest import controlled_spec, point_light, principled, sphere, tiny_params
-from tests.render.test_render_contract import _interior
-from tests.render.test_variety_spec import _euler_xyz
 
 
 def _maps(root, light=None):
@@ -49,10 +47,10 @@ def test_stretched_sphere_has_the_ellipsoids_unit_normals(tmp_path, bpy_render):
     spec = controlled_spec([obj], [point_light((4.0, -3.0, 1.0))])
     _, handles = bpy_render(spec, tmp_path, tiny_params(resolution=64), verify=False)
     view = _maps(tmp_path)
-    inner = _interior(view["mask"])
+    inner = interior(view["mask"])
     assert inner.sum() > 300
     eye, rays, world_from_camera = _camera_rays(handles)
-    M = _euler_xyz(rotation) @ np.diag(size * np.asarray(stretch))
+    M = euler_xyz(rotation) @ np.diag(size * np.asarray(stretch))
     M_inv = np.linalg.inv(M)
     a, b = M_inv @ eye, rays[inner] @ M_inv.T  # the ray in the unit sphere's frame: a + t b
     qa, qb, qc = (b * b).sum(-1), 2 * b @ a, a @ a - 1.0
@@ -135,7 +133,7 @@ def test_normals_mask_and_patterns_of_the_variety_scene(variety_scene):
     root, _, _ = variety_scene
     view = _maps(root)
     mask, n = view["mask"][..., 0], view["normal"]
-    inner = _interior(view["mask"])
+    inner = interior(view["mask"])
     w = mask.shape[1]
     assert mask[:, : w // 2].sum() > 100 and mask[:, w // 2 :].sum() > 100, "both objects are masked in"
     assert mask[0, 0] == 0 and (n[mask == 0] == 0).all()

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import yaml
 
+from fixtures.render_scenes import euler_xyz
 from pilight.params import ParamsError, RenderParams, load_section
 from pilight.render.material_classes import ALBEDO_RANGE, METAL_F0
 from pilight.render.spec import SKY_IRRADIANCE, half_height, scene_spec
@@ -114,15 +115,6 @@ def _objects(specs):
     return [(s, o) for s in specs for o in s["objects"]]
 
 
-def _euler_xyz(deg) -> np.ndarray:
-    """Blender's XYZ Euler matrix, R = Rz Ry Rx."""
-    x, y, z = np.radians(deg)
-    rx = np.array([[1, 0, 0], [0, math.cos(x), -math.sin(x)], [0, math.sin(x), math.cos(x)]])
-    ry = np.array([[math.cos(y), 0, math.sin(y)], [0, 1, 0], [-math.sin(y), 0, math.cos(y)]])
-    rz = np.array([[math.cos(z), -math.sin(z), 0], [math.sin(z), math.cos(z), 0], [0, 0, 1]])
-    return rz @ ry @ rx
-
-
 def test_stretch_scales_a_share_of_objects_per_axis_and_room_objects_still_rest_on_the_floor():
     p = RenderParams(scene={"stretch": {"probability": 0.5, "lo": 0.6, "hi": 1.6}})
     pairs = _objects([scene_spec(p, 42, "train", i) for i in range(60)])
@@ -134,7 +126,7 @@ def test_stretch_scales_a_share_of_objects_per_axis_and_room_objects_still_rest_
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     for spec, o in pairs:
         if "stretch" in o:  # half_height: the stretched, rotated bounding sphere's reach along z
-            z = (u * o["scale"] * np.asarray(o["stretch"])) @ _euler_xyz(o["rotation_deg"])[2]
+            z = (u * o["scale"] * np.asarray(o["stretch"])) @ euler_xyz(o["rotation_deg"])[2]
             assert abs(half_height(o) - z.max()) < 2e-3 * o["scale"]
         if spec["kind"] == "room":
             assert o["location"][2] == pytest.approx(half_height(o), abs=1e-4), "on the floor (z = 0)"

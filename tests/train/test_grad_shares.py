@@ -19,15 +19,15 @@ def test_shares_are_the_terms_gradient_norms_over_their_sum():
 
 
 def test_stage_two_logs_shares_summing_to_one(tmp_path):
-    from tests.relight.test_physics_first import _pair, _task
+    from fixtures.relight_pairs import physics_pair, tiny_relight_task
 
-    task = _task(tmp_path, train={"grad_share_every": 1}, lambda_image=1.0)
-    b = _pair()
+    task = tiny_relight_task(tmp_path, train={"grad_share_every": 1}, lambda_image=1.0)
+    b = physics_pair()
     b |= {"diffuse_a": b["image_a"], "specular_a": torch.zeros_like(b["image_a"])}
     task.stack.model.train()
     _, logs = task.loss(b, torch.Generator().manual_seed(0))
     shares = {k: v for k, v in logs.items() if k.startswith("grad_share_")}
     assert set(shares) == {f"grad_share_{k}" for k in ("vpred", "ds", "ps", "rec", "image")}
     assert sum(shares.values()) == pytest.approx(1.0)
-    _, quiet = _task(tmp_path, lambda_image=1.0).loss(b, torch.Generator().manual_seed(0))
+    _, quiet = tiny_relight_task(tmp_path, lambda_image=1.0).loss(b, torch.Generator().manual_seed(0))
     assert not any(k.startswith("grad_share_") for k in quiet)  # off by default: no extra backward passes

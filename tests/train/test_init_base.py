@@ -7,11 +7,11 @@ from __future__ import annotations
 import pytest
 import torch
 
+from fixtures.stage_scripts import TINY_NETWORK
 from pilight.base_model import BaseModelError, init_from_base
 from pilight.models.folder import save_model, trainable_state
 from pilight.params import IntrinsicsParams
 from pilight.train.intrinsics import IntrinsicsTask
-from tests.stage_scripts import TINY_NETWORK
 
 
 def _params(**unet) -> IntrinsicsParams:

@@ -8,11 +8,11 @@ from pathlib import Path
 import pytest
 import torch
 
+from fixtures.stage_scripts import TINY_NETWORK, params_file, run_stage, tiny_shards, training_outputs
 from pilight.data.shards import intrinsics_dataset, make_loader
 from pilight.models.intrinsics import targets_to_maps
 from pilight.params import DOMAINS, IntrinsicsParams, SamplingParams
 from pilight.train.intrinsics import IntrinsicsTask, domain_targets, latent_mask, masked_latent_mse
-from tests.stage_scripts import TINY_NETWORK, params_file, run_stage, tiny_shards, training_outputs
 
 TINY = {
     **TINY_NETWORK,

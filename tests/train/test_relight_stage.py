@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from fixtures.stage_scripts import TINY_NETWORK, params_file, run_stage, tiny_shards, training_outputs
 from pilight.data.predictions import write_predictions
 from pilight.data.schema import DataError
 from pilight.data.shards import intrinsics_dataset, make_loader, relight_dataset
@@ -17,7 +18,6 @@ from pilight.relight.conditions import choose_intrinsics
 from pilight.relight.encoding import tonemap
 from pilight.relight.physics_terms import physics_terms
 from pilight.train.relight import RelightTask
-from tests.stage_scripts import TINY_NETWORK, params_file, run_stage, tiny_shards, training_outputs
 
 TINY = {
     **TINY_NETWORK,

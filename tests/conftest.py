@@ -1,9 +1,11 @@
+"""Fixtures every test package shares: a tiny untrained model pair and a real photograph."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from tests.cli.tiny import save_tiny_models
+from fixtures.tiny_models import save_tiny_models
 
 
 @pytest.fixture(scope="session")

@@ -1,0 +1,28 @@
+"""What a relit photo is measured by where no ground truth exists (issue 33's flip test and
+benchmarks/photo_relight.py): which side the light brightens, how much of the photo's detail is kept,
+and its exposure. All on Rec. 709 luminance of (H, W, 3) linear images."""
+
+from __future__ import annotations
+
+import numpy as np
+
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float32)
+
+
+def lr_asymmetry(rgb: np.ndarray) -> float:
+    """(R - L) / (R + L) of the mean luminance of the right and left halves: > 0 when the right is brighter."""
+    y = rgb @ LUMINANCE
+    half = y.shape[1] // 2
+    left, right = float(y[:, :half].mean()), float(y[:, half:].mean())
+    return (right - left) / max(right + left, 1e-12)
+
+
+def detail(rgb: np.ndarray) -> float:
+    """Mean absolute luminance gradient, both axes (the detail ratio divides the relit photo's by the photo's)."""
+    y = rgb @ LUMINANCE
+    return float(np.abs(np.diff(y, axis=0)).mean() + np.abs(np.diff(y, axis=1)).mean())
+
+
+def exposure(rgb: np.ndarray, photo: np.ndarray) -> float:
+    """Mean luminance of ``rgb`` over the photo's (the exposure ratio)."""
+    return float((rgb @ LUMINANCE).mean() / max(float((photo @ LUMINANCE).mean()), 1e-12))
