@@ -26,7 +26,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pilight.data import layout  # noqa: E402
 from pilight.data.exr import write_exr  # noqa: E402
 from pilight.data.shard_params import ShardParams  # noqa: E402
-from pilight.data.shards import intrinsics_dataset, make_loader, relight_dataset, write_shards  # noqa: E402
+from pilight.data.shard_reader import intrinsics_dataset, make_loader, relight_dataset
+from pilight.data.shard_writer import write_shards  # noqa: E402
 
 VIEWS, LIGHTS = 4, 4
 

@@ -52,7 +52,7 @@ def _train_case(steps: int, size: int, threads: int, q) -> None:
 
     from fixtures.fake_renders import write_fake_renders
     from pilight.data.shard_params import ShardParams
-    from pilight.data.shards import write_shards
+    from pilight.data.shard_writer import write_shards
     from pilight.params import load_section
     from pilight.train.relight import RelightTask
 

@@ -51,7 +51,7 @@ import torch
 
 from pilight.data import schema
 from pilight.data.colour import tonemap01
-from pilight.data.shards import eval_dataset, make_loader
+from pilight.data.shard_reader import eval_dataset, make_loader
 from pilight.diffusion.codec import cell_mean, cell_smooth
 from pilight.eval.light_following import ChangeR2
 from pilight.eval.metrics import psnr_per_image, ssim_per_image

@@ -63,7 +63,7 @@ def subset_renders(renders: Path, n_train: int, out: Path) -> Path:
 
 def scenes(args) -> None:
     from pilight.data.shard_params import ShardParams
-    from pilight.data.shards import write_shards
+    from pilight.data.shard_writer import write_shards
 
     raw = apply_overrides(read_params(args.params)["intrinsics"], args.overrides)
     base = load_section("base", args.params)

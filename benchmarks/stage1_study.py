@@ -67,7 +67,7 @@ def apply_overrides(section: dict, overrides: list[str], root: str = "intrinsics
 @torch.no_grad()
 def score(task, shards: Path, split: str, limit: int | None = None) -> dict[str, float]:
     """Held-out figures of ``task``'s model on ``split`` (single-step), masked as evaluate does."""
-    from pilight.data.shards import intrinsics_dataset, make_loader
+    from pilight.data.shard_reader import intrinsics_dataset, make_loader
     from pilight.eval.metrics import angular_errors, masked_mae, masked_psnr, normal_metrics
     from pilight.train.map_losses import albedo_scale
 

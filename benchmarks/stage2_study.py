@@ -33,7 +33,7 @@ SINGLE_STEP = SamplingParams(mode="single_step", cfg_scale=1.0)
 @torch.no_grad()
 def score(task, shards: Path) -> dict[str, float]:
     from pilight.data.colour import tonemap01
-    from pilight.data.shards import eval_dataset, make_loader
+    from pilight.data.shard_reader import eval_dataset, make_loader
     from pilight.eval.light_following import ChangeR2, cross_light
     from pilight.eval.metrics import psnr_per_image
     from pilight.relight import physics_first as pf

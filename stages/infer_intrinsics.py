@@ -24,7 +24,7 @@ def options(ap) -> None:
 
 
 def body(args, base, p, ip) -> int:
-    from pilight.data.shards import read_index
+    from pilight.data.shard_reader import read_index
     from pilight.eval.predict_intrinsics import predict_intrinsics_splits
     from pilight.models.folder import load_model
     from pilight.models.intrinsics import IntrinsicsModel

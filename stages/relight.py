@@ -31,7 +31,7 @@ def options(ap) -> None:
 
 
 def body(args, base, p, ip) -> int:
-    from pilight.data.shards import read_index
+    from pilight.data.shard_reader import read_index
     from pilight.eval.relit_pairs import relight_split
     from pilight.models.folder import load_model
     from pilight.models.relight import RelightModel

@@ -23,7 +23,7 @@ def options(ap) -> None:
 
 def body(args, base, shard, render) -> int:
     from pilight.data.exr import ExrError
-    from pilight.data.shards import write_shards
+    from pilight.data.shard_writer import write_shards
 
     with fails_on(ExrError, OSError):
         index = write_shards(

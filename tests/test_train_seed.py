@@ -54,7 +54,7 @@ def _stub_task(seen: list | None, factor: int = 4):
 def _seeds_of(stage: str, params: Path, monkeypatch) -> list:
     """The seeds ``stage`` hands to its task, its run identity, sampling and sweeps, with the heavy parts
     stubbed (stages/<stage>.py runs in-process up to the point its seeds are used)."""
-    import pilight.data.shards as shards
+    import pilight.data.shard_reader as shards
     import pilight.eval.predict_intrinsics as predict
     import pilight.eval.relit_pairs as relit_pairs
     import pilight.eval.trade as trade

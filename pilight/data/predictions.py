@@ -25,9 +25,11 @@ import numpy as np
 import webdataset as wds
 
 from pilight import atomic
+from pilight.atomic import sha256_file
 from pilight.data.exr import ExrError, read_exr_bytes, write_exr
 from pilight.data.schema import DataError
-from pilight.data.shards import TAR_MTIME, TAR_OWNER, count_samples, sha256_file
+from pilight.data.shard_reader import count_samples
+from pilight.data.shard_writer import TAR_MTIME, TAR_OWNER
 
 
 def _exr_bytes(arr: np.ndarray, scratch: Path) -> bytes:

@@ -33,7 +33,7 @@ import torch
 
 from pilight.data.predictions import read_predictions
 from pilight.data.schema import DataError
-from pilight.data.shards import intrinsics_dataset, make_loader
+from pilight.data.shard_reader import intrinsics_dataset, make_loader
 from pilight.eval.light_invariance import light_invariance
 from pilight.eval.metrics import (
     PSNR_CAP,

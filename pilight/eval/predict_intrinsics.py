@@ -18,7 +18,7 @@ import torch
 from tqdm import tqdm
 
 from pilight.data.predictions import write_predictions
-from pilight.data.shards import intrinsics_dataset, make_loader
+from pilight.data.shard_reader import intrinsics_dataset, make_loader
 
 
 class Timing:

@@ -40,7 +40,7 @@ import torch
 from pilight.data.colour import to_uint8, tonemap01
 from pilight.data.predictions import read_predictions
 from pilight.data.schema import DataError
-from pilight.data.shards import eval_dataset, make_loader
+from pilight.data.shard_reader import eval_dataset, make_loader
 from pilight.eval.grids import labelled_grid
 from pilight.eval.light_following import (
     PROBE_AZIMUTH_DEG,

@@ -32,7 +32,7 @@ import torch
 from tqdm import tqdm
 
 from pilight.data.predictions import write_predictions
-from pilight.data.shards import eval_dataset, make_loader
+from pilight.data.shard_reader import eval_dataset, make_loader
 from pilight.eval.flip_check import FLIP_CHECK_BATCHES, flip_check
 from pilight.eval.light_following import PROBE_LIGHTS, PROBE_SPLIT, cross_light, probe_batch, probe_key, select_probes
 from pilight.params import DOMAINS

@@ -277,7 +277,7 @@ def sweep_samples(shards: Path, pred_dir: Path, split: str, n: int) -> tuple[dic
     ``split``, each stacked into one batch (DataError when either is empty), and the stage-1
     predictions in ``pred_dir`` that condition the pairs (None: ground truth conditions them)."""
     from pilight.data.schema import DataError
-    from pilight.data.shards import eval_dataset, make_loader
+    from pilight.data.shard_reader import eval_dataset, make_loader
     from pilight.relight.conditions import optional_predictions
 
     imgs = first_n(make_loader(eval_dataset(shards, "test", "intrinsics"), 8), n)
@@ -314,7 +314,7 @@ def lights_grid(task, shards: Path, split: str, ip, seed: int, preds: dict | Non
     """reports/relit_lights.png (pilight.eval.relit_lights): the first cross-light pair of each of the first
     RELIT_LIGHTS_ROWS views of ``split``, relit under ``lights`` analytic lights, conditioned on ``preds``
     (stage-1 predictions) when given, else on ground truth."""
-    from pilight.data.shards import eval_dataset, make_loader
+    from pilight.data.shard_reader import eval_dataset, make_loader
     from pilight.eval.relit_lights import relit_lights_grid
     from pilight.relight.conditions import choose_intrinsics
 

@@ -30,7 +30,7 @@ import torch.nn.functional as F
 
 from pilight.data import schema
 from pilight.data.colour import linear_to_srgb, srgb_to_linear, to_uint8
-from pilight.data.shards import intrinsics_dataset, make_loader
+from pilight.data.shard_reader import intrinsics_dataset, make_loader
 from pilight.diffusion.schedule import sample_timesteps, v_to_x0
 from pilight.eval.grids import labelled_grid
 from pilight.models.intrinsics import IntrinsicsModel

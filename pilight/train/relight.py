@@ -45,7 +45,7 @@ import torch.nn.functional as F
 from pilight.data import schema
 from pilight.data.colour import to_uint8
 from pilight.data.schema import DataError
-from pilight.data.shards import make_loader, relight_dataset
+from pilight.data.shard_reader import make_loader, relight_dataset
 from pilight.diffusion.codec import cell_mean
 from pilight.diffusion.schedule import sample_timesteps, v_to_x0
 from pilight.eval.grids import labelled_grid

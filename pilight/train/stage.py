@@ -37,7 +37,7 @@ def run_training_stage(
     from pilight import atomic
     from pilight.base_model import BaseModelError, init_from_base
     from pilight.data.schema import DataError
-    from pilight.data.shards import read_index
+    from pilight.data.shard_reader import read_index
     from pilight.models.folder import save_model
     from pilight.models.stack import ModelError, check_image_size
     from pilight.train.checkpoint import CheckpointError, run_identity

@@ -24,15 +24,15 @@ from pilight.data.exr import read_exr, write_exr
 from pilight.data.pairs import read_pairs
 from pilight.data.schema import DataError, SampleError
 from pilight.data.shard_params import ShardParams
-from pilight.data.shards import (
+from pilight.data.shard_reader import (
     eval_dataset,
     exr_decoder,
     intrinsics_dataset,
     make_loader,
     read_index,
     relight_dataset,
-    write_shards,
 )
+from pilight.data.shard_writer import write_shards
 from pilight.data.splits import SplitError, read_split
 
 REPO = Path(__file__).resolve().parents[2]
@@ -399,7 +399,7 @@ def test_shard_folder_follows_the_umask(renders, tmp_path):
 def test_full_disk_names_the_shard_folder(renders, tmp_path, monkeypatch):
     import errno
 
-    import pilight.data.shards as shards_mod
+    import pilight.data.shard_writer as shards_mod
 
     def full(*args, **kw):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))

@@ -10,7 +10,7 @@ import torch
 
 from fixtures.fake_predictions import write_intrinsics_predictions
 from fixtures.stage_scripts import tiny_shards
-from pilight.data.shards import intrinsics_dataset, make_loader
+from pilight.data.shard_reader import intrinsics_dataset, make_loader
 from pilight.eval.intrinsics import MEDIAN_BINS, evaluate_intrinsics, median_from_counts, train_constants
 from pilight.eval.metrics import PSNR_CAP
 

@@ -13,7 +13,7 @@ from fixtures.fake_predictions import LOG_SCALE, fake_relit, write_relit
 from fixtures.stage_scripts import tiny_shards
 from pilight.data.predictions import read_predictions, write_predictions
 from pilight.data.schema import DataError
-from pilight.data.shards import eval_dataset, make_loader
+from pilight.data.shard_reader import eval_dataset, make_loader
 from pilight.eval.metrics import PSNR_CAP
 from pilight.eval.metrics_files import numbers_only
 from pilight.eval.relight import evaluate_relight, relight_report

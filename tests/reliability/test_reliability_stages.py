@@ -13,7 +13,7 @@ import pytest
 from accelerate.state import AcceleratorState
 
 from fixtures.stage_scripts import REPO, params_file, tiny_shards, training_outputs
-from pilight.data.shards import read_index
+from pilight.data.shard_reader import read_index
 
 TINY = {
     "unet": {

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from fixtures.stage_scripts import TINY_NETWORK, params_file, run_stage, tiny_shards, training_outputs
-from pilight.data.shards import intrinsics_dataset, make_loader
+from pilight.data.shard_reader import intrinsics_dataset, make_loader
 from pilight.models.intrinsics import targets_to_maps
 from pilight.params import DOMAINS, IntrinsicsParams, SamplingParams
 from pilight.train.intrinsics import IntrinsicsTask, domain_targets, latent_mask, masked_latent_mse

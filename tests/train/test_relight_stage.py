@@ -11,7 +11,7 @@ import torch
 from fixtures.stage_scripts import TINY_NETWORK, params_file, run_stage, tiny_shards, training_outputs
 from pilight.data.predictions import write_predictions
 from pilight.data.schema import DataError
-from pilight.data.shards import intrinsics_dataset, make_loader, relight_dataset
+from pilight.data.shard_reader import intrinsics_dataset, make_loader, relight_dataset
 from pilight.params import DOMAINS, RelightParams, SamplingParams
 from pilight.relight.branches import encode_conditions
 from pilight.relight.conditions import choose_intrinsics
