@@ -13,7 +13,7 @@ import yaml
 
 from fixtures.stage_scripts import REPO, params_file
 from pilight.params import BaseParams, load_section
-from pilight.train.checkpoint import run_identity
+from pilight.train.run_identity import run_identity
 
 AFTER_SHARDS = {"train_intrinsics", "infer_intrinsics", "train_relight", "relight", "trade"}
 

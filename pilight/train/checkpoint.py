@@ -14,11 +14,7 @@ A checkpoint is a folder ``<checkpoint_dir>/step_<NNNNNNN>/`` holding
 Folders are written under a hidden temporary name and renamed into place, so a crash mid-write
 never leaves a folder that :func:`latest_checkpoint` would pick.
 
-The folder belongs to one *run*: ``run.json`` holds its identity (the training params that shape
-the weights, and a hash of the training data).  Under ``dvc repro`` the folder is ``persist: true``,
-so it survives a params change; :func:`claim_run` drops checkpoints of any other run, otherwise
-``dvc exp run -S relight.lambda_ps=0`` would resume the previous experiment's finished weights and
-train nothing.  ``steps`` is not part of the identity: raising it continues a finished run.  A ``step_*`` folder is only
+The folder belongs to one *run* (pilight.train.run_identity: ``run.json``).  A ``step_*`` folder is only
 considered if all three files exist and their safetensors headers parse (a truncated file fails
 that check), so hand-damaged folders are skipped too.
 
@@ -32,17 +28,14 @@ and falling back to an older one (or to step 0) is said in so many words.  Weigh
 Inf are never written (:class:`NonFiniteError`): a diverged run must not replace the last good
 checkpoint.
 
-Sharded runs (FSDP) write the same files: :func:`gather_sharded` gathers full CPU copies of the
-weights, the AdamW state and the EMA onto the main process, which writes them as above; the
-optimizer state keeps the parameter-index keys of ``Optimizer.state_dict()``.  On resume every
-process reads the full tensors and keeps its own shard (:func:`load_checkpoint` sees a sharded
+Sharded runs (FSDP) write the same files (pilight.train.sharded_state gathers them onto the main
+process, and on resume every process keeps its own shard; :func:`load_checkpoint` sees a sharded
 model).  So a checkpoint does not record how the run was sharded, and an FSDP run resumes from a
 DDP run's checkpoint and back (the RNG streams need the same process count).
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import re
@@ -56,6 +49,7 @@ from safetensors.torch import load_file, load_model, save_file, save_model
 
 from pilight import atomic
 from pilight.atomic import sha256_file
+from pilight.train.sharded_state import is_sharded, load_sharded, shard_like
 
 MODEL_FILE = "model.safetensors"
 OPTIMIZER_FILE = "optimizer.safetensors"
@@ -63,7 +57,6 @@ STATE_FILE = "state.safetensors"
 FILES = (MODEL_FILE, OPTIMIZER_FILE, STATE_FILE)
 EMA_FILE = "ema.safetensors"
 TMP_PREFIX = ".tmp-"
-RUN_FILE = "run.json"
 CHECKSUM_FILE = "checksums.json"
 _NAME = re.compile(r"^step_(\d{7,})$")
 
@@ -186,88 +179,6 @@ def step_of(path: Path) -> int:
     return int(_NAME.match(Path(path).name).group(1))
 
 
-def hash_files(paths: list[Path]) -> str:
-    """blake2b over the files' names and bytes, in sorted order (folders are walked)."""
-    h = hashlib.blake2b(digest_size=16)
-    files = sorted(f for p in map(Path, paths) for f in ([p] if p.is_file() else p.rglob("*")) if f.is_file())
-    for f in files:
-        h.update(f.name.encode() + b"\0")
-        with open(f, "rb") as fh:
-            for chunk in iter(lambda: fh.read(1 << 20), b""):
-                h.update(chunk)
-    return h.hexdigest()
-
-
-# Train keys that never change the weights of step k (steps: raising it continues the run).
-_NOT_IDENTITY = (
-    "steps",
-    "checkpoint_every",
-    "keep_checkpoints",
-    "log_every",
-    "image_every",
-    "num_workers",
-    "grad_share_every",
-)
-
-
-def run_identity(seed: int, section: str, params: dict[str, Any], data: list[Path]) -> dict[str, Any]:
-    """The identity of a training run: seed, the stage's params (less ``_NOT_IDENTITY`` under
-    ``train``) and a hash of its data files, for :func:`claim_run`."""
-    params = json.loads(json.dumps(params))
-    for key in _NOT_IDENTITY:
-        params.get("train", {}).pop(key, None)
-    return {"seed": seed, section: params, "data": hash_files(data)}
-
-
-def claim_run(checkpoint_dir: Path, identity: dict[str, Any], max_step: int) -> list[str]:
-    """Make ``checkpoint_dir`` hold only checkpoints of the run ``identity`` (JSON-able) up to ``max_step``.
-
-    Checkpoints written under another identity (or with none recorded) are deleted, as are
-    checkpoints past ``max_step`` (``steps`` was lowered: the run must end with ``max_step``'s
-    weights).  Returns one line per reason something was dropped, for the log."""
-    d = Path(checkpoint_dir)
-    d.mkdir(parents=True, exist_ok=True)
-    run_file, found = d / RUN_FILE, list_checkpoints(d)
-    wanted = json.loads(json.dumps(identity, sort_keys=True))
-    old = _read_run_file(run_file) if run_file.is_file() else None
-    dropped: list[str] = []
-    if found and old != wanted:
-        changed = sorted(k for k in set(wanted) | set(old or {}) if (old or {}).get(k) != wanted.get(k))
-        dropped.append(f"{d}: {len(found)} checkpoint(s) of another run dropped (changed: {', '.join(changed)})")
-        for p in found:
-            shutil.rmtree(p)
-    elif late := [p for p in found if step_of(p) > max_step]:
-        dropped.append(f"{d}: checkpoint(s) past step {max_step} dropped: {', '.join(p.name for p in late)}")
-        for p in late:
-            shutil.rmtree(p)
-    tmp = d / f"{TMP_PREFIX}{RUN_FILE}-{os.getpid()}"
-    try:
-        tmp.write_text(json.dumps(wanted, indent=1, sort_keys=True) + "\n", encoding="utf-8")
-        os.replace(tmp, run_file)
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise atomic.path_error(exc, run_file, lambda name: name == str(tmp)) from exc
-    return dropped
-
-
-def _read_run_file(run_file: Path) -> dict[str, Any]:
-    # Not guessed at: deleting the checkpoints of a run that might be this one could throw away
-    # hours of training, and keeping them could resume another run's weights.
-    try:
-        old = json.loads(run_file.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise CheckpointError(
-            f"{run_file}: unreadable ({exc}); it records which run the checkpoints next to it "
-            f"belong to. Restore it, or delete {run_file.parent} to train from step 0"
-        ) from None
-    if not isinstance(old, dict):
-        raise CheckpointError(
-            f"{run_file}: want a JSON object, got {type(old).__name__}; restore it, or delete "
-            f"{run_file.parent} to train from step 0"
-        )
-    return old
-
-
 def remove_stale_tmp(checkpoint_dir: Path) -> None:
     """Delete leftovers of writes interrupted by a crash (only ever our own hidden folders)."""
     d = Path(checkpoint_dir)
@@ -284,92 +195,6 @@ def _fsync(path: Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
-
-
-def is_sharded(model: torch.nn.Module) -> bool:
-    """True for a module sharded by FSDP (torch's ``fully_shard``, or the FSDP1 wrapper)."""
-    from torch.distributed.fsdp import FSDPModule, FullyShardedDataParallel
-
-    return any(isinstance(m, (FSDPModule, FullyShardedDataParallel)) for m in model.modules())
-
-
-def _full(t: torch.Tensor) -> torch.Tensor:
-    """The whole tensor of a DTensor shard (a collective: every process calls it), else ``t``."""
-    from torch.distributed.tensor import DTensor
-
-    return t.full_tensor() if isinstance(t, DTensor) else t
-
-
-def _shard_like(full: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
-    """``full`` placed like ``ref``: this process's shard of it when ``ref`` is a DTensor."""
-    from torch.distributed.tensor import DTensor, distribute_tensor
-
-    if isinstance(ref, DTensor):  # every process holds the full tensor: src_data_rank=None slices it locally
-        return distribute_tensor(full.to(ref.device), ref.device_mesh, ref.placements, src_data_rank=None)
-    return full.to(ref.device)
-
-
-def _by_index(osd: dict[str, Any]) -> dict[str, Any]:
-    """torch.distributed.checkpoint keys optimizer state by parameter name, ``Optimizer.state_dict()`` by
-    the parameter's position over the param groups; the files keep the position."""
-    index = {name: i for i, name in enumerate(n for g in osd["param_groups"] for n in g["params"])}
-    return {
-        "state": {index[n]: entry for n, entry in osd["state"].items()},
-        "param_groups": [{**g, "params": [index[n] for n in g["params"]]} for g in osd["param_groups"]],
-    }
-
-
-def _by_name(sd: dict[str, Any], names: list[str]) -> dict[str, Any]:
-    n_saved = sum(len(g["params"]) for g in sd["param_groups"])
-    if n_saved != len(names):
-        raise CheckpointError(
-            f"the checkpoint holds optimizer state for {n_saved} parameters, the model trains {len(names)}"
-        )
-    return {
-        "state": {names[int(i)]: entry for i, entry in sd["state"].items()},
-        "param_groups": [{**g, "params": [names[i] for i in g["params"]]} for g in sd["param_groups"]],
-    }
-
-
-def gather_sharded(
-    model: torch.nn.Module, optimizer: torch.optim.Optimizer, ema: Any = None
-) -> tuple[dict[str, torch.Tensor], dict[str, Any], dict[str, Any] | None]:
-    """(weights, optimizer state, EMA state) of a sharded run as full CPU tensors, for :func:`save_checkpoint`.
-
-    A collective: every process calls it.  The main process receives the tensors, the others empty
-    dicts (``cpu_offload``: no process but the writer ever holds a full copy).  ``optimizer`` is the
-    torch optimizer itself, not accelerate's wrapper."""
-    from torch.distributed.checkpoint.state_dict import StateDictOptions, get_state_dict
-
-    weights, optim = get_state_dict(model, optimizer, options=StateDictOptions(full_state_dict=True, cpu_offload=True))
-    ema_state = None
-    if ema is not None:
-        shadow = []
-        for t in ema.shadow_params:
-            whole = _full(t)  # a collective: every process gathers, the main one keeps
-            if weights:
-                shadow.append(whole.cpu())
-        ema_state = {**ema.state_dict(), "shadow_params": shadow} if weights else None
-    return weights, (_by_index(optim) if optim else {}), ema_state
-
-
-def _load_sharded(path: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer) -> None:
-    """Every process reads the full tensors and keeps its shard of them (no process waits on another)."""
-    from torch.distributed.checkpoint.state_dict import StateDictOptions, get_optimizer_state_dict, set_state_dict
-
-    with safe_open(str(path / OPTIMIZER_FILE), framework="pt") as fh:
-        opt_meta = fh.metadata()
-    saved = _unflatten_optimizer(load_file(str(path / OPTIMIZER_FILE)), opt_meta)
-    # The parameter names in the optimizer's order, from this process's own (sharded) state: no gather.
-    local = get_optimizer_state_dict(model, optimizer, options=StateDictOptions())
-    names = [n for g in local["param_groups"] for n in g["params"]]
-    set_state_dict(
-        model,
-        optimizer,
-        model_state_dict=load_file(str(path / MODEL_FILE)),
-        optim_state_dict=_by_name(saved, names),
-        options=StateDictOptions(full_state_dict=True),
-    )
 
 
 def _flatten_optimizer(sd: dict[str, Any]) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
@@ -477,7 +302,10 @@ def load_checkpoint(
     path = Path(path)
     try:
         if is_sharded(model):
-            _load_sharded(path, model, optimizer)  # strict too
+            with safe_open(str(path / OPTIMIZER_FILE), framework="pt") as fh:
+                opt_meta = fh.metadata()
+            saved = _unflatten_optimizer(load_file(str(path / OPTIMIZER_FILE)), opt_meta)
+            load_sharded(model, optimizer, load_file(str(path / MODEL_FILE)), saved)  # strict too
         else:
             # strict: a checkpoint from a different architecture must fail loudly, not half-load.
             load_model(model, str(path / MODEL_FILE), strict=True)
@@ -527,6 +355,6 @@ def _load_ema(ema: Any, path: Path) -> None:
     ema.load_state_dict(
         {
             **state,
-            "shadow_params": [_shard_like(tensors[f"shadow.{i:05d}"], ref) for i, ref in enumerate(ema.shadow_params)],
+            "shadow_params": [shard_like(tensors[f"shadow.{i:05d}"], ref) for i, ref in enumerate(ema.shadow_params)],
         }
     )

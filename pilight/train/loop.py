@@ -67,7 +67,7 @@ from tqdm.auto import tqdm
 from pilight.machine import cpu_has_native_bf16
 from pilight.params import TrainParams
 from pilight.train import checkpoint as ckpt
-from pilight.train import sharding
+from pilight.train import run_identity, sharded_state, sharding
 
 # A logged loss (the mean over a log_every window) above this multiple of the run's first logged loss is
 # divergence. Healthy runs of both stages end below their start; within a run the windows' means vary by a
@@ -261,7 +261,7 @@ def train(
     there); ``seed`` is ``base.seed``: process k draws from a generator seeded ``seed + k``.
 
     ``identity`` (JSON-able: the params that shape the weights and a data hash) ties the
-    checkpoints to one run, see :func:`pilight.train.checkpoint.claim_run`; without it any
+    checkpoints to one run, see :func:`pilight.train.run_identity.claim_run`; without it any
     checkpoint in the folder is trusted."""
     checkpoint_dir = Path(checkpoint_dir)
     cuda = torch.cuda.is_available()
@@ -289,7 +289,7 @@ def train(
     if acc.is_main_process:
         ckpt.remove_stale_tmp(checkpoint_dir)
         if identity is not None:
-            for line in ckpt.claim_run(checkpoint_dir, identity, cfg.steps):
+            for line in run_identity.claim_run(checkpoint_dir, identity, cfg.steps):
                 acc.print(line)
     acc.wait_for_everyone()
     latest, notes = ckpt.find_resume(checkpoint_dir, max_step=cfg.steps)
@@ -403,7 +403,7 @@ def train(
                 rng = _rng_tensors(acc, generator)  # collective: every process, before the main one writes
                 # Sharded: full CPU copies gathered onto the main process (a collective too).
                 saved = (
-                    ckpt.gather_sharded(model, optimizer.optimizer, ema)
+                    sharded_state.gather_sharded(model, optimizer.optimizer, ema)
                     if sharded
                     else (acc.unwrap_model(model), optimizer, ema)
                 )

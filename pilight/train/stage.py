@@ -29,7 +29,7 @@ def run_training_stage(
     (a shard, a checkpoint, a diverged loss, a full disk) end the stage with exit 1 and a message
     naming the file (pilight.stage_cli.fails_on).
 
-    ``data``: the inputs whose bytes belong to the run's identity (checkpoint.run_identity).
+    ``data``: the inputs whose bytes belong to the run's identity (pilight.train.run_identity).
     A task with ``describe()`` (what each substituted part is) has it printed and written to
     ``out/task.json`` for reports."""
     import torch
@@ -40,8 +40,9 @@ def run_training_stage(
     from pilight.data.shard_reader import read_index
     from pilight.models.folder import save_model
     from pilight.models.stack import ModelError, check_image_size
-    from pilight.train.checkpoint import CheckpointError, run_identity
+    from pilight.train.checkpoint import CheckpointError
     from pilight.train.loop import resolve_mixed_precision, train
+    from pilight.train.run_identity import run_identity
 
     # Before the task is built: its model is initialised from the global RNG. Seeding after it
     # (as this function once did) gave every run different initial weights.

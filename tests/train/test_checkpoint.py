@@ -11,6 +11,7 @@ import torch
 from safetensors import safe_open
 
 from pilight.train import checkpoint as ckpt
+from pilight.train import run_identity as run_id
 
 
 def _setup(seed: int = 0):
@@ -196,9 +197,9 @@ def test_bad_run_json_is_a_message(tmp_path: Path, content: str):
     model, opt, sched = _setup()
     _train_a_bit(model, opt, sched, 1)
     _save(tmp_path, 1, model, opt, sched)
-    (tmp_path / ckpt.RUN_FILE).write_text(content)
-    with pytest.raises(ckpt.CheckpointError, match=rf"{tmp_path / ckpt.RUN_FILE}: .*delete {tmp_path}"):
-        ckpt.claim_run(tmp_path, {"seed": 1}, 10)
+    (tmp_path / run_id.RUN_FILE).write_text(content)
+    with pytest.raises(ckpt.CheckpointError, match=rf"{tmp_path / run_id.RUN_FILE}: .*delete {tmp_path}"):
+        run_id.claim_run(tmp_path, {"seed": 1}, 10)
     assert ckpt.latest_checkpoint(tmp_path) is not None  # nothing was deleted on a guess
 
 

@@ -14,6 +14,7 @@ from safetensors.torch import load_file
 
 from pilight.params import TrainParams
 from pilight.train import checkpoint as ckpt
+from pilight.train import run_identity as run_id
 from pilight.train.loop import train
 
 
@@ -184,7 +185,7 @@ def test_checkpoints_of_another_run_are_dropped_not_resumed(tmp_path: Path):
     out = train(task, cfg(steps=4), tmp_path / "c", None, progress=False, identity={"lr": 2})
     assert out["resumed_from"] is None
     assert_bit_equal(weights(fresh), weights(task))
-    assert json.loads((tmp_path / "c" / ckpt.RUN_FILE).read_text()) == {"lr": 2}
+    assert json.loads((tmp_path / "c" / run_id.RUN_FILE).read_text()) == {"lr": 2}
 
 
 def test_lowering_steps_ends_at_the_new_step(tmp_path: Path):
@@ -202,14 +203,14 @@ def test_run_identity_ignores_steps_and_sees_the_data(tmp_path: Path):
     (tmp_path / "d").mkdir()
     (tmp_path / "d" / "a.tar").write_bytes(b"abc")
     p = {"lr": 1e-4, "train": {"steps": 10, "lr": 1e-4, "log_every": 5}}
-    a = ckpt.run_identity(42, "intrinsics", p, [tmp_path / "d"])
-    b = ckpt.run_identity(
+    a = run_id.run_identity(42, "intrinsics", p, [tmp_path / "d"])
+    b = run_id.run_identity(
         42, "intrinsics", {**p, "train": {**p["train"], "steps": 99, "log_every": 1}}, [tmp_path / "d"]
     )
     assert a == b and p["train"]["steps"] == 10  # the caller's dict is not modified
-    assert ckpt.run_identity(42, "intrinsics", {**p, "lr": 2e-4}, [tmp_path / "d"]) != a
+    assert run_id.run_identity(42, "intrinsics", {**p, "lr": 2e-4}, [tmp_path / "d"]) != a
     (tmp_path / "d" / "a.tar").write_bytes(b"abd")
-    assert ckpt.run_identity(42, "intrinsics", p, [tmp_path / "d"]) != a
+    assert run_id.run_identity(42, "intrinsics", p, [tmp_path / "d"]) != a
 
 
 def test_retention_keeps_newest(tmp_path: Path):
