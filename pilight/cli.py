@@ -594,7 +594,8 @@ def _sweep(out: Path, folders) -> None:
 
 
 def cmd_decompose(args) -> int:
-    from pilight.photo import PhotoError, linear_to_srgb8, normal_preview, read_photo
+    from pilight.photo import PhotoError, read_photo
+    from pilight.pictures import linear_to_srgb8, normal_preview
 
     check_model_options(args)  # exit 2 before anything is read, loaded or created
     photos = expand_inputs(args.photos)
@@ -657,7 +658,7 @@ def contact_sheet(photo_rgb, ball, relit):
     import torch.nn.functional as F
 
     from pilight.eval.grids import labelled_grid
-    from pilight.photo import linear_to_srgb8
+    from pilight.pictures import linear_to_srgb8
 
     h, w = photo_rgb.shape[:2]
     th = min(h, CONTACT_HEIGHT)
@@ -690,7 +691,8 @@ def _lights(args, size: int):
 
 def cmd_relight(args) -> int:
     from pilight.lights import BALL_SIZE, ball_preview
-    from pilight.photo import PhotoError, linear_to_srgb8, read_photo
+    from pilight.photo import PhotoError, read_photo
+    from pilight.pictures import linear_to_srgb8
 
     check_model_options(args)  # exit 2 before anything is read, loaded or created
     lights = _lights(args, BALL_SIZE)  # bad light options fail before any model is loaded

@@ -285,6 +285,6 @@ def parse_lights(
 
 def ball_preview(ball: torch.Tensor) -> np.ndarray:
     """(3, S, S) linear ball -> sRGB uint8 (S, S, 3) for PNGs and contact sheets."""
-    from pilight.photo import linear_to_srgb8
+    from pilight.pictures import linear_to_srgb8
 
     return linear_to_srgb8(ball.permute(1, 2, 0).cpu().numpy())

@@ -69,29 +69,6 @@ def srgb_to_linear(y: np.ndarray) -> np.ndarray:
     return curve(np.clip(np.asarray(y, dtype=np.float32), 0.0, 1.0)).astype(np.float32)
 
 
-def linear_to_srgb8(x: np.ndarray, alpha: np.ndarray | None = None) -> np.ndarray:
-    """Linear values (clipped at 1) -> sRGB uint8 (H, W, 3), or (H, W, 4) with ``alpha`` (H, W) in [0, 1]."""
-    from pilight.data.colour import srgb_preview
-
-    x = np.asarray(x, dtype=np.float32)
-    if x.ndim == 2:
-        x = x[..., None]
-    if x.shape[2] == 1:
-        x = np.repeat(x, 3, axis=2)
-    out = srgb_preview(x)
-    if alpha is not None:
-        out = np.concatenate([out, np.round(np.clip(alpha, 0, 1) * 255)[..., None].astype(np.uint8)], axis=2)
-    return out
-
-
-def normal_preview(n: np.ndarray, alpha: np.ndarray | None = None) -> np.ndarray:
-    """Unit normals (H, W, 3) -> the usual RGB picture (n + 1) / 2, stored as is (not sRGB-encoded)."""
-    u8 = np.round(np.clip((np.asarray(n, np.float32) + 1) / 2, 0, 1) * 255).astype(np.uint8)
-    if alpha is not None:
-        u8 = np.concatenate([u8, np.round(np.clip(alpha, 0, 1) * 255)[..., None].astype(np.uint8)], axis=2)
-    return u8
-
-
 # --- headers --------------------------------------------------------------------------------
 def probe(path: str | Path) -> tuple[int, int]:
     """(height, width) as displayed (EXIF orientation applied), from the header only."""

@@ -73,23 +73,6 @@ def srgb_to_linear(y):
     return _where(y <= SRGB_KNEE_ENCODED, y / 12.92, ((y + 0.055) / 1.055) ** 2.4)
 
 
-# --- uint8 pictures for people ------------------------------------------------------------
-def srgb_preview(x: np.ndarray) -> np.ndarray:
-    """Linear values -> sRGB uint8 for PNG previews only (clips at 1; never a model input)."""
-    x = np.clip(np.asarray(x, dtype=np.float32), 0.0, 1.0)
-    return np.round(linear_to_srgb(x) * 255.0).astype(np.uint8)
-
-
-def to_uint8(x, hdr: bool) -> np.ndarray:
-    """C x H x W tensor -> H x W x 3 uint8 preview (``hdr``: srgb_preview, clipped at 1; else the
-    [0, 1] values as they are, e.g. ``tonemap01`` of an HDR image). For report tiles and training
-    previews only."""
-    a = x.detach().float().cpu().numpy().transpose(1, 2, 0)
-    if a.shape[2] == 1:
-        a = np.repeat(a, 3, axis=2)
-    return srgb_preview(a) if hdr else (np.clip(a, 0, 1) * 255 + 0.5).astype(np.uint8)
-
-
 __all__ = [
     "HDR_MAX",
     "EXPOSURE",
@@ -100,6 +83,4 @@ __all__ = [
     "tonemap01",
     "linear_to_srgb",
     "srgb_to_linear",
-    "srgb_preview",
-    "to_uint8",
 ]

@@ -222,8 +222,8 @@ def intrinsics_report(
 
 def grid(image: torch.Tensor, gt: dict, pred: dict, mask: torch.Tensor, n: int) -> np.ndarray:
     """One row per image: input | (ground truth, prediction) for each predicted intrinsic, labelled."""
-    from pilight.data.colour import to_uint8
     from pilight.eval.grids import labelled_grid
+    from pilight.pictures import to_uint8
 
     domains = [d for d in DOMAINS if d in pred]
     rows = []

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pilight.data.colour import to_uint8, tonemap01
+from pilight.data.colour import tonemap01
 from pilight.data.predictions import read_predictions
 from pilight.data.schema import DataError
 from pilight.data.shard_reader import eval_dataset, make_loader
@@ -64,6 +64,7 @@ from pilight.eval.relight_tiers import (
 )
 from pilight.physics import compose
 from pilight.physics.calculated import diffuse_calculated
+from pilight.pictures import to_uint8
 
 PROBE_COUNT_MAX = 64  # probes are re-selected in shard order; those the relight stage relit are scored
 ABSOLUTE, RELATIVE = "_abs", ""  # the model's split suffixes; the checks and the grid use ABSOLUTE

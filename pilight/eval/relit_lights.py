@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from pilight.data.colour import to_uint8
 from pilight.eval.grids import labelled_grid
 from pilight.lights import direction
 from pilight.physics import ball_from_light
+from pilight.pictures import to_uint8
 
 SWEEP_AZIMUTH_DEG = 120.0  # the lights run from -120 (camera-left, behind) to +120 (camera-right)
 SWEEP_ELEVATION_DEG = 30.0

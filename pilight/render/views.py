@@ -24,10 +24,10 @@ import numpy as np
 
 from pilight import atomic
 from pilight.data import layout
-from pilight.data.colour import linear_to_srgb
 from pilight.data.exr import read_render_passes, write_exr
 from pilight.eval.grids import labelled_grid
 from pilight.params import RenderParams
+from pilight.pictures import srgb8_preview_lut
 from pilight.render import passes as P
 from pilight.render import scene as S
 
@@ -40,23 +40,10 @@ def write_json(path: Path, obj) -> None:
     atomic.write_text(path, json.dumps(obj, indent=1, sort_keys=True))  # no final newline: sidecar bytes as ever
 
 
-def _srgb8_exact(x: np.ndarray) -> np.ndarray:
-    # +0.5 and truncation, not srgb_preview's round-half-even: the bytes of every preview.png so far.
-    return (linear_to_srgb(np.clip(x, 0.0, 1.0)) * 255.0 + 0.5).astype(np.uint8)
-
-
-# A 16-bit lookup table: 4x faster than the power law per preview, within one code value of it.
-_SRGB_LUT = _srgb8_exact(np.linspace(0.0, 1.0, 65536))
-
-
-def _srgb8(x: np.ndarray) -> np.ndarray:
-    return _SRGB_LUT[(np.clip(x, 0.0, 1.0) * 65535.0 + 0.5).astype(np.uint16)]
-
-
 def write_preview(path: Path, tiles: list[np.ndarray]) -> None:
     """sRGB PNG strip for people (the only place sRGB is used in the render stage): the tiles side by
     side, no gaps; the ball, smaller, at the top of its column with black below."""
-    strip = labelled_grid([[_srgb8(t) for t in tiles]], None, gap=0, tight=True)
+    strip = labelled_grid([[srgb8_preview_lut(t) for t in tiles]], None, gap=0, tight=True)
     # compress_level 1: a quarter of the default's encode time for files about 7% larger.
     atomic.write_png(path, strip, compress_level=1)
 

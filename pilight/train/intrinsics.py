@@ -29,13 +29,14 @@ import torch
 import torch.nn.functional as F
 
 from pilight.data import schema
-from pilight.data.colour import linear_to_srgb, srgb_to_linear, to_uint8
+from pilight.data.colour import linear_to_srgb, srgb_to_linear
 from pilight.data.shard_reader import intrinsics_dataset, make_loader
 from pilight.diffusion.schedule import sample_timesteps, v_to_x0
 from pilight.eval.grids import labelled_grid
 from pilight.models.intrinsics import IntrinsicsModel
 from pilight.models.stack import PREVIEW_SAMPLING
 from pilight.params import DOMAINS, IntrinsicsParams
+from pilight.pictures import to_uint8
 from pilight.train.map_losses import task_loss
 
 

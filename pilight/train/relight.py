@@ -43,7 +43,6 @@ import torch
 import torch.nn.functional as F
 
 from pilight.data import schema
-from pilight.data.colour import to_uint8
 from pilight.data.schema import DataError
 from pilight.data.shard_reader import make_loader, relight_dataset
 from pilight.diffusion.codec import cell_mean
@@ -54,6 +53,7 @@ from pilight.models.stack import PREVIEW_SAMPLING
 from pilight.params import RelightParams
 from pilight.physics import make_feature_extractor, masked_mse, physics_loss
 from pilight.physics.calculated import diffuse_calculated
+from pilight.pictures import to_uint8
 from pilight.relight import physics_first as pf
 from pilight.relight.branches import (
     branch_targets,

@@ -9,17 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from pilight.data.colour import (
-    HDR_MAX,
-    Y_MAX,
-    hdr_to_model,
-    linear_to_srgb,
-    model_to_hdr,
-    srgb_preview,
-    srgb_to_linear,
-    to_uint8,
-    tonemap01,
-)
+from pilight.data.colour import HDR_MAX, Y_MAX, hdr_to_model, linear_to_srgb, model_to_hdr, srgb_to_linear, tonemap01
+from pilight.pictures import srgb_preview, to_uint8
 
 hdr64 = arrays(np.float64, st.integers(1, 32), elements=st.floats(0.0, HDR_MAX))
 hdr32 = arrays(np.float32, st.integers(1, 32), elements=st.floats(0.0, 1e3, width=32))
