@@ -7,6 +7,9 @@ stage 1, "Scaling"), the evidence the base model's budget is chosen from.
     # samples: every checkpoint of a training run, scored on the test split
     python benchmarks/scaling_study.py samples --params base/params.yaml --shards base/data/shards \\
         --checkpoints base/checkpoints/intrinsics --json /tmp/samples.json
+    # the docs' figure: both axes, one panel per map
+    python benchmarks/scaling_study.py plot --samples /tmp/samples.json --scenes /tmp/scenes.json \\
+        -o docs/images/stage1_scaling.png
 
 `scenes` builds, per N, a render folder of symlinks to the first N training scenes and every val/test
 scene, shards it with the shard stage's own code (so the test split is the same for every N), then
@@ -113,6 +116,57 @@ def samples(args) -> None:
             args.json.write_text(json.dumps(result, indent=1))
 
 
+PANELS = (  # (row keys, label, baseline key in the rows or None)
+    (("normal_mean", "normal_median"), "normals: mean, median (deg)", None),
+    (("albedo_si_psnr",), "albedo si-PSNR (dB)", "input_albedo_si_psnr"),
+    (("roughness_mae",), "roughness MAE", None),
+    (("metallic_mae",), "metallic MAE", None),
+)
+
+
+def plot(args) -> None:
+    """Both axes as one figure: a row per axis, a panel per map, the machine in the title."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from pilight import atomic
+
+    axes_data = [
+        (json.loads(f.read_text()), x, label)
+        for f, x, label in (
+            (args.samples, "samples", "samples seen (one run, its checkpoints)"),
+            (args.scenes, "train_scenes", "training scenes (1,000 steps of 8 each)"),
+        )
+        if f is not None
+    ]
+    if not axes_data:
+        raise SystemExit("plot: give --samples and/or --scenes (the JSON files of the other two commands)")
+    fig, grid = plt.subplots(
+        len(axes_data), len(PANELS), figsize=(4 * len(PANELS), 3.2 * len(axes_data)), squeeze=False
+    )
+    for row, (data, x, xlabel) in zip(grid, axes_data):
+        rows = sorted(data["rows"], key=lambda r: r[x])
+        xs = [r[x] for r in rows]
+        for ax, (keys, label, base) in zip(row, PANELS):
+            for k in keys:
+                ax.plot(xs, [r[k] for r in rows], "o-", label=k.split("_")[-1] if len(keys) > 1 else None)
+            if base and base in rows[0]:
+                ax.axhline(rows[0][base], color="gray", ls="--", label="input image")
+            ax.set_xscale("log")
+            ax.minorticks_off()
+            ax.set_xticks(xs, [f"{v // 1000}k" if v >= 4000 else str(v) for v in xs])
+            ax.set_xlabel(xlabel)
+            ax.set_title(label, fontsize=10)
+            if len(keys) > 1 or base:
+                ax.legend(fontsize=8)
+    fig.suptitle(f"Stage 1 on the base's test split; {axes_data[0][0].get('machine', '')}", fontsize=10)
+    fig.tight_layout()
+    atomic.write_with(args.out, lambda tmp: fig.savefig(tmp, format="png", dpi=110))
+    print(f"plot: {args.out}")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="axis", required=True)
@@ -130,8 +184,12 @@ def main(argv: list[str] | None = None) -> int:
     s = sub.choices["samples"]
     s.add_argument("--shards", type=Path, required=True)
     s.add_argument("--checkpoints", type=Path, required=True)
+    s = sub.add_parser("plot")
+    s.add_argument("--samples", type=Path, default=None, help="the samples command's --json")
+    s.add_argument("--scenes", type=Path, default=None, help="the scenes command's --json")
+    s.add_argument("-o", "--out", type=Path, required=True)
     args = ap.parse_args(argv)
-    (scenes if args.axis == "scenes" else samples)(args)
+    {"scenes": scenes, "samples": samples, "plot": plot}[args.axis](args)
     return 0
 
 
