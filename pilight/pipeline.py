@@ -466,12 +466,55 @@ class PILightPipeline:
                 )
         return photo, x, m
 
+    def to(self, device: str | torch.device) -> PILightPipeline:
+        """Both models on ``device`` (diffusers' habit); returns the pipeline."""
+        dev = pick_device(device) if isinstance(device, str) else torch.device(device)
+        self.intrinsics_model.to(dev)
+        self.relight_model.to(dev)
+        self.device = dev
+        return self
+
+    def _sampling(
+        self, saved: SamplingParams, steps: int | None, guidance: float | None, ensemble: int | None
+    ) -> SamplingParams:
+        """The saved config's sampling with a call's own settings on top (diffusers' per-call arguments):
+        ``num_inference_steps`` 1 is single-step, more is DDIM with that many steps."""
+        update: dict[str, Any] = {}
+        if steps is not None:
+            update |= {"mode": "single_step" if steps == 1 else "ddim", "steps": steps}
+        if guidance is not None:
+            update["cfg_scale"] = guidance
+        if ensemble is not None:
+            update["ensemble"] = ensemble
+        if not update:
+            return saved
+        from pydantic import ValidationError
+
+        try:
+            return SamplingParams.model_validate(saved.model_dump() | update)
+        except ValidationError as exc:
+            raise PipelineError(f"sampling settings of this call: {_format_validation('sampling', exc)}") from None
+
     @torch.no_grad()
-    def decompose(self, image, *, resolution: int | None = None, name: str = "<image>") -> DecompositionOutput:
-        """A photo (path, PIL, numpy, tensor: ``photo.as_photo``) -> its intrinsics at the input's size."""
+    def decompose(
+        self,
+        image,
+        *,
+        resolution: int | None = None,
+        name: str = "<image>",
+        num_inference_steps: int | None = None,
+        guidance_scale: float | None = None,
+        ensemble_size: int | None = None,
+        generator: torch.Generator | None = None,
+    ) -> DecompositionOutput:
+        """A photo (path, PIL, numpy, tensor: ``photo.as_photo``) -> its intrinsics at the input's size.
+
+        Sampling defaults to the saved config's (``pipeline.json``: single step); ``num_inference_steps``,
+        ``guidance_scale`` and ``ensemble_size`` change it for this call, and ``generator`` replaces the
+        config's seed (the default makes every call give the same bytes)."""
         photo, x, m = self._prepare(image, resolution, name)
-        sp = self.config.intrinsics_sampling
-        gen = torch.Generator().manual_seed(self.config.seed)
+        sp = self._sampling(self.config.intrinsics_sampling, num_inference_steps, guidance_scale, ensemble_size)
+        gen = generator if generator is not None else torch.Generator().manual_seed(self.config.seed)
         pred = self.intrinsics_model.predict(x.to(self.device), DOMAINS, sp, gen)
         cond = {d: pred[d].float().cpu() for d in DOMAINS}
         cond["normal"] = cond["normal"] * m  # the contract: normals are 0 off the mask
@@ -506,6 +549,10 @@ class PILightPipeline:
         name: str = "<image>",
         absolute: bool = False,
         exposure: str = "photo",
+        num_inference_steps: int | None = None,
+        guidance_scale: float | None = None,
+        ensemble_size: int | None = None,
+        generator: torch.Generator | None = None,
     ) -> RelightOutput:
         """A photo under each of ``lights``: stage 1 once (or ``intrinsics`` from ``decompose`` of the
         same photo at the same resolution), then stage 2 for all lights in batches of
@@ -517,7 +564,11 @@ class PILightPipeline:
 
         ``exposure`` (relative intensity only): ``photo`` scales each relit image (its light, by linearity)
         so that its mean luminance on the mask is k times the photo's; ``light`` keeps the light's level,
-        so a light from the side darkens the picture (pilight.relight.intensity)."""
+        so a light from the side darkens the picture (pilight.relight.intensity).
+
+        ``num_inference_steps``, ``guidance_scale``, ``ensemble_size`` and ``generator`` are stage 2's
+        for this call, as in ``decompose`` (stage 1 runs with the config's; pass ``intrinsics`` from a
+        ``decompose`` call to choose its own)."""
         lights = [lights] if isinstance(lights, Light) else list(lights)
         if not lights:
             raise PipelineError("relight needs at least one light")
@@ -537,7 +588,7 @@ class PILightPipeline:
         intensity = "absolute" if absolute else "relative"
         levels = torch.tensor([float(l.intensity) for l in lights])
         given = balls if absolute else relative_light(balls, levels)
-        sp = self.config.relight_sampling
+        sp = self._sampling(self.config.relight_sampling, num_inference_steps, guidance_scale, ensemble_size)
         outs: dict[str, list[torch.Tensor]] = {}
         for start in range(0, len(lights), sp.batch_size):
             b = given[start : start + sp.batch_size]
@@ -545,7 +596,7 @@ class PILightPipeline:
             rep = lambda t: t.expand(k, *t.shape[1:]).to(self.device)  # noqa: B023 (called within this iteration)
             batch = {"image_a": rep(x), "ball_b": b.to(self.device), "mask": rep(m)}
             intr = {d: rep(cond[d]) for d in DOMAINS}
-            gen = torch.Generator().manual_seed(self.config.seed)
+            gen = generator if generator is not None else torch.Generator().manual_seed(self.config.seed)
             pred = self.relight_model.predict(batch, sp, gen, intr, intensity=intensity)
             for key, v in pred.items():
                 outs.setdefault(key, []).append(v.float().cpu())

@@ -105,3 +105,22 @@ def test_exposure_photo_keeps_k_times_the_photos_mean_luminance(pipe, astronaut)
         np.testing.assert_allclose(kept.diffuse[i], raw.diffuse[i] * kept.exposure_gain[i], rtol=1e-4, atol=1e-6)
     with pytest.raises(PipelineError, match="exposure must be one of photo, light, got 'camera'"):
         pipe.relight(photo, ls, exposure="camera")
+
+
+def test_sampling_settings_per_call_and_to(pipe, astronaut):
+    """diffusers' habits: sampling settings are arguments of each call (defaults from the saved config),
+    a per-call generator, and .to(device)."""
+    import torch
+
+    one = pipe.decompose(astronaut)
+    assert np.array_equal(pipe.decompose(astronaut, num_inference_steps=1).albedo, one.albedo)  # the config's
+    two = pipe.decompose(astronaut, num_inference_steps=2)
+    assert not np.array_equal(two.albedo, one.albedo)  # DDIM with 2 steps is another prediction
+    g = lambda: torch.Generator().manual_seed(7)
+    a = pipe.relight(astronaut, [lights.named("left")], intrinsics=one, guidance_scale=1.0, generator=g())
+    b = pipe.relight(astronaut, [lights.named("left")], intrinsics=one, guidance_scale=1.0, generator=g())
+    assert a.relit.tobytes() == b.relit.tobytes()
+    assert pipe.config.relight_sampling.cfg_scale != 1.0  # so guidance_scale=1.0 was this call's own
+    with pytest.raises(PipelineError, match="sampling settings of this call: sampling.cfg_scale"):
+        pipe.decompose(astronaut, guidance_scale=-1.0)
+    assert pipe.to("cpu") is pipe and pipe.device.type == "cpu"
