@@ -56,18 +56,24 @@ def masked_mse(
     return _reduce(num / den.clamp_min(1e-8), reduction)
 
 
-def diffuse_shading_loss(d_calc, d_pred, mask, reduction: str = "mean"):
+def _identity(x):
+    return x
+
+
+def diffuse_shading_loss(d_calc, d_pred, mask, reduction: str = "mean", space=_identity):
     """``L_DS = MSE(D_calculated, D_pred)`` over the foreground (paper, Diffuse Shading Loss).
 
     ``d_calc`` comes from ``diffuse_shading`` (data, not a prediction); the
-    caller decides whether to detach it.
+    caller decides whether to detach it. ``space``: applied to both sides before the MSE (stage 2
+    compares in its tone-mapped space, pilight.relight.physics_terms); the identity = linear HDR.
     """
-    return masked_mse(d_calc, d_pred, mask, reduction)
+    return masked_mse(space(d_calc), space(d_pred), mask, reduction)
 
 
-def physical_shading_loss(relit, albedo, d_pred, s_pred, mask=None, reduction: str = "mean"):
-    """``L_PS = MSE(I_relit, A (.) D_pred + S_pred)`` (paper eq. lpb)."""
-    return masked_mse(relit, compose(albedo, d_pred, s_pred), mask, reduction)
+def physical_shading_loss(relit, albedo, d_pred, s_pred, mask=None, reduction: str = "mean", space=_identity):
+    """``L_PS = MSE(I_relit, A (.) D_pred + S_pred)`` (paper eq. lpb): the identity is formed in linear
+    HDR, then both sides pass through ``space`` (as in ``diffuse_shading_loss``)."""
+    return masked_mse(space(relit), space(compose(albedo, d_pred, s_pred)), mask, reduction)
 
 
 def reconstruction_loss(relit, inp, extractor: nn.Module, reduction: str = "mean"):

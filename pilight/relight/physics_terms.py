@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import torch
 
-from pilight.physics import compose, masked_mse, reconstruction_loss
+from pilight.physics import diffuse_shading_loss, physical_shading_loss, reconstruction_loss
 from pilight.relight.encoding import to_linear, tonemap
 
 PHYSICS_SPACE = "tonemapped"
@@ -56,11 +56,9 @@ def physics_terms(
         zero = torch.zeros(B, device=y.device)
         return {"ds": zero, "ps": zero, "rec": rec}
     d_lin, s_lin = to_linear(y[:, 1]), to_linear(y[:, 2])
-    composed = compose(albedo.float(), d_lin, s_lin)
-    if space == "tonemapped":
-        ds = masked_mse(tonemap(d_calc), tonemap(d_lin), mask, reduction="none")
-        ps = masked_mse(relit_tm, tonemap(composed), mask if ps_on_mask else None, reduction="none")
-    else:
-        ds = masked_mse(d_calc, d_lin, mask, reduction="none")
-        ps = masked_mse(relit_lin, composed, mask if ps_on_mask else None, reduction="none")
+    into = tonemap if space == "tonemapped" else (lambda x: x)
+    ds = diffuse_shading_loss(d_calc, d_lin, mask, reduction="none", space=into)
+    ps = physical_shading_loss(
+        relit_lin, albedo.float(), d_lin, s_lin, mask if ps_on_mask else None, reduction="none", space=into
+    )
     return {"ds": ds, "ps": ps, "rec": rec}

@@ -148,3 +148,18 @@ def test_dinov2_features(tiny_dinov2):
 def test_dinov2_via_factory(tiny_dinov2):
     ext = make_feature_extractor("dinov2", str(tiny_dinov2), resolution=16)
     assert ext(torch.rand(1, 3, 16, 16)).shape == (1, 1 + 16, 32)
+
+
+def test_the_losses_compare_in_the_space_they_are_given():
+    """Stage 2 trains with these very functions in its tone-mapped space (pilight.relight.physics_terms):
+    ``space`` maps both sides, after the identity A * D + S is formed in linear HDR."""
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.rand(2, 3, 4, 4, generator=g), torch.rand(2, 3, 4, 4, generator=g)
+    mask = torch.ones(2, 1, 4, 4)
+    double = lambda x: 2 * x
+    torch.testing.assert_close(diffuse_shading_loss(a, b, mask, space=double), 4 * diffuse_shading_loss(a, b, mask))
+    A, D, S = torch.full((1, 3, 2, 2), 0.5), torch.full((1, 3, 2, 2), 2.0), torch.zeros(1, 3, 2, 2)
+    square = lambda x: x**2
+    # linear: relit 1.5 against A * D + S = 1.0; squared first: 2.25 against 1.0
+    torch.testing.assert_close(physical_shading_loss(A * 3, A, D, S), torch.tensor(0.25))
+    torch.testing.assert_close(physical_shading_loss(A * 3, A, D, S, space=square), torch.tensor(1.5625))
