@@ -12,6 +12,8 @@ from typing import Annotated, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
+from pilight.data.layout import INTRINSIC_MAPS
+
 # The HDRIs Blender ships in datafiles/studiolights/world (no download needed).
 BUNDLED_HDRIS = ("city", "courtyard", "forest", "interior", "night", "studio", "sunrise", "sunset")
 SHAPES = ("sphere", "icosphere", "cube", "cylinder", "cone", "torus", "monkey")
@@ -446,7 +448,7 @@ class RenderParams(_Section):
         return self
 
 
-DOMAINS = ("albedo", "normal", "roughness", "metallic")  # stage 1's outputs, in one-hot order
+DOMAINS = INTRINSIC_MAPS  # stage 1's outputs, in one-hot order (pilight.data.layout: one definition)
 MAX_CHANNELS = 8192  # a UNet level's width (SD2's widest: 1280)
 MAX_LEVELS = 8  # UNet levels: each halves the latent
 MAX_UNET_PARAMS = 2_000_000_000  # ~32 GiB to train with AdamW (SD2's UNet: 0.87e9)

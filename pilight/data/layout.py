@@ -29,7 +29,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-VIEW_MAPS = ("albedo", "normal", "roughness", "metallic", "mask")
+INTRINSIC_MAPS = ("albedo", "normal", "roughness", "metallic")  # what stage 1 predicts, in its one-hot order
+VIEW_MAPS = (*INTRINSIC_MAPS, "mask")  # per view: the intrinsics and the mask, shared by the view's lights
 LIGHT_MAPS = ("image", "diffuse", "specular", "ball")
 OPTIONAL_LIGHT_MAPS = ("ball_lambertian",)
 # float32 where the identity image = albedo * diffuse + specular must hold to float precision.

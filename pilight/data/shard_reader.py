@@ -24,13 +24,12 @@ from torch.utils.data import DataLoader, IterableDataset
 
 from pilight.atomic import sha256_file
 from pilight.data.exr import read_exr_bytes
+from pilight.data.layout import VIEW_MAPS
 from pilight.data.pairs import read_pairs
 from pilight.data.schema import (
     DataError,
     sample_key,
 )
-
-INTRINSICS = ("albedo", "normal", "roughness", "metallic", "mask")
 
 
 def exr_decoder(key: str, data: bytes):
@@ -213,7 +212,7 @@ class ShardDataset(IterableDataset):
     def _decode(self, item: Any) -> dict[str, Any]:
         if self.task == "intrinsics":
             out = {"key": item["__key__"], "meta": item["meta.json"].decode()}
-            out.update({k: _tensor(item, k) for k in ("image", *INTRINSICS)})
+            out.update({k: _tensor(item, k) for k in ("image", *VIEW_MAPS)})
             return out
         sa, sb = item
         ma, mb = _meta(sa), _meta(sb)
@@ -229,14 +228,14 @@ class ShardDataset(IterableDataset):
             out["ball_lambertian_b"] = _tensor(sb, "ball_lambertian")
         if "ball_lambertian.exr" in sa:
             out["ball_lambertian_a"] = _tensor(sa, "ball_lambertian")
-        out.update({k: _tensor(sb, k) for k in INTRINSICS})
+        out.update({k: _tensor(sb, k) for k in VIEW_MAPS})
         return out
 
 
 # Members every sample of a task needs; one lost to a cut tar must be named, not a KeyError later.
 _REQUIRED = {
-    "intrinsics": ("meta.json", "image.exr", *(f"{k}.exr" for k in INTRINSICS)),
-    "relight": ("meta.json", "image.exr", "ball.exr", "diffuse.exr", "specular.exr", *(f"{k}.exr" for k in INTRINSICS)),
+    "intrinsics": ("meta.json", "image.exr", *(f"{k}.exr" for k in VIEW_MAPS)),
+    "relight": ("meta.json", "image.exr", "ball.exr", "diffuse.exr", "specular.exr", *(f"{k}.exr" for k in VIEW_MAPS)),
 }
 
 

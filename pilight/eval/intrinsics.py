@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pilight.data.layout import VIEW_MAPS
 from pilight.data.predictions import read_predictions
 from pilight.data.schema import DataError
 from pilight.data.shard_reader import intrinsics_dataset, make_loader
@@ -45,9 +46,9 @@ from pilight.eval.metrics import (
     normal_metrics,
 )
 from pilight.eval.scale_invariant import LMSE_STRIDE, LMSE_WINDOW, lmse, scaled_to
+from pilight.params import DOMAINS
 
 SCALARS = ("roughness", "metallic")
-DOMAINS = ("albedo", "normal", "roughness", "metallic")
 
 
 def display01(domain: str, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -112,10 +113,10 @@ def train_constants(shard_dir: Path) -> dict[str, dict[str, float]]:
 
 
 def _collect(shard_dir: Path, split: str, preds: dict) -> dict:
-    keys = ("image", "albedo", "normal", "roughness", "metallic", "mask")
+    keys = ("image", *VIEW_MAPS)
     gt = {k: [] for k in keys}
     metas: list[dict] = []
-    pr = {k: [] for k in ("albedo", "normal", "roughness", "metallic")}
+    pr = {k: [] for k in DOMAINS}
     lacking: dict[str, list[str]] = {k: [] for k in pr}
     for b in make_loader(intrinsics_dataset(shard_dir, split, shuffle=False), 8):
         for i, key in enumerate(b["key"]):

@@ -20,7 +20,7 @@ from safetensors.torch import load_file, save_file
 
 from pilight import atomic
 from pilight.atomic import sha256_file
-from pilight.models.stack import ModelError, Stack
+from pilight.models.stack import DiffusionStack, ModelError
 
 
 class UnverifiedModelWarning(UserWarning):
@@ -99,7 +99,7 @@ def verify_manifest(
     return True
 
 
-def save_model(stack: Stack, out_dir: Path, params: dict, dtype: torch.dtype | None = None) -> None:
+def save_model(stack: DiffusionStack, out_dir: Path, params: dict, dtype: torch.dtype | None = None) -> None:
     """Weights, config.json, then checksums.json (the sha256 of both, which load_model requires).
     ``dtype``: store floating tensors in it (float16 for the shipped base: half the bytes; load_model
     copies them into the float32 model).
@@ -132,7 +132,9 @@ def verify_model_folder(model_dir: Path, *, trust_unverified: bool = False) -> b
     return verify_manifest(model_dir, COVERED, trust_unverified=trust_unverified, fix="rerun the training stage")
 
 
-def load_model(stack: Stack, model_dir: Path, *, trust_unverified: bool = False, verified: bool = False) -> None:
+def load_model(
+    stack: DiffusionStack, model_dir: Path, *, trust_unverified: bool = False, verified: bool = False
+) -> None:
     """Load trained weights into ``stack``; every way the folder can be wrong is a ModelError naming the
     file. The manifest is required (``verify_model_folder``) unless ``trust_unverified``; ``verified``:
     the caller has just checked it (``pilight.pipeline.load_stage`` does before it reads config.json)."""

@@ -15,7 +15,7 @@ import torch.nn.functional as F
 
 from pilight.data import schema
 from pilight.data.colour import srgb_to_linear
-from pilight.models.stack import Stack, build_stack
+from pilight.models.stack import DiffusionStack, build_stack
 from pilight.params import DOMAINS, IntrinsicsParams, SamplingParams
 
 
@@ -41,7 +41,7 @@ class IntrinsicsModel:
         self.p = p
         self.joint = p.layout == "joint"
         V = len(DOMAINS)
-        self.stack: Stack = (
+        self.stack: DiffusionStack = (
             build_stack(p, num_domains=1, items_per_sample=1, cond_channels=None, maps_per_item=V)
             if self.joint
             else build_stack(p, num_domains=V, cond_channels=None)

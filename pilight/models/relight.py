@@ -3,7 +3,7 @@ specular S in one batched pass, built from the params a model was trained with (
 
 What it holds is what prediction needs: the branches and the condition maps each reads
 (pilight.relight.branches), the physics anchors (pilight.relight.physics_first), the light's intensity
-(pilight.relight.intensity) and the Stack. Training (pilight.train.relight.RelightTask) builds on it
+(pilight.relight.intensity) and the DiffusionStack. Training (pilight.train.relight.RelightTask) builds on it
 and adds batches, targets and the loss; the photo API, the relight stage and the trade sweep use this
 alone, so they import nothing of training, shards or Blender.
 """
@@ -19,7 +19,7 @@ import torch
 from pilight.data import schema
 from pilight.data.schema import DataError
 from pilight.diffusion.codec import cell_smooth
-from pilight.models.stack import Stack, build_stack
+from pilight.models.stack import DiffusionStack, build_stack
 from pilight.params import DOMAINS, RelightParams, SamplingParams
 from pilight.relight import physics_first as pf
 from pilight.relight.branches import (
@@ -45,7 +45,7 @@ class RelightModel:
         self.V = len(self.branches)
         self.width = cond_width(p.decomposition, p.d_calc_condition, p.physics_first)
         codec_channels = _latent_channels(p)
-        self.stack: Stack = build_stack(p, num_domains=self.V, cond_channels=self.width * codec_channels)
+        self.stack: DiffusionStack = build_stack(p, num_domains=self.V, cond_channels=self.width * codec_channels)
 
     def describe(self) -> dict[str, Any]:
         return {

@@ -1,4 +1,4 @@
-"""params -> codec + UNet + attention + conditioning + schedule (a Stack), the same code for both stages,
+"""params -> codec + UNet + attention + conditioning + schedule (a DiffusionStack), the same code for both stages,
 for inference (pilight.models) and training (pilight.train) alike. Its files on disk are
 pilight.models.folder's.
 """
@@ -30,7 +30,7 @@ class ModelError(ValueError):
 
 
 @dataclass
-class Stack:
+class DiffusionStack:
     codec: object
     model: DomainDiffusion
     scheduler: object
@@ -94,7 +94,7 @@ def build_stack(
     items_per_sample: int | None = None,
     cond_channels: int | None = None,
     maps_per_item: int = 1,
-) -> Stack:
+) -> DiffusionStack:
     """p: a params section with codec, unet, conditioning, cross_batch_attention, schedule.
     ``maps_per_item``: how many maps one UNet item predicts, stacked on channels (stage 1's joint layout:
     the UNet's output is that many codec latents)."""
@@ -144,7 +144,7 @@ def build_stack(
         terminal_timestep=s.num_train_timesteps - 1 if s.terminal_input == "zero" else None,
     )
     scheduler = make_train_scheduler(s.num_train_timesteps, s.beta_schedule, s.rescale_zero_snr, s.timestep_spacing)
-    return Stack(codec, model, scheduler, items_per_sample, p.cross_batch_attention)
+    return DiffusionStack(codec, model, scheduler, items_per_sample, p.cross_batch_attention)
 
 
 def check_image_size(size: tuple[int, int], factor: int, where: str) -> None:
