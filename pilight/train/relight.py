@@ -8,20 +8,15 @@ The parts, each in a file named for it under pilight/relight/:
 - physics_first.py: the physics-first output (ours, relight.physics_first): on the mask
   I_relit = A_x D_pred + S_pred with D and S as gains on their physics lookups;
 - physics_terms.py: the paper's L_DS, L_PS, L_rec;
+- objective.py: the whole loss, L = L_vpred + (1/max(t, t_min)) (lambda_ds L_DS + lambda_ps L_PS +
+  lambda_rec L_rec) + lambda_image L_image, every weight in one place;
 - conditions.py: ground-truth or stage-1-predicted intrinsics as conditions.
 
-Loss (paper, final loss):
-
-    L = L_vpred + (1/max(t, t_min)) (lambda_ds L_DS + lambda_ps L_PS + lambda_rec L_rec)
-
-L_vpred = MSE(v, v_target) (v_target: diffusers' DDPMScheduler.get_velocity) on the latents of all branches. ``lambda_image`` (ours; 0 = the paper) adds
-E2E-FT's task loss where single-step inference runs: lambda_image * MSE(tonemap(I_relit), tonemap(I_b))
-on the samples drawn at t = T - 1 (Garcia et al. 2024, "Fine-tuning image-conditional diffusion
-models is easier than you think"), not weighted by 1/t, which there is 1/999. The physics terms act on the decoded x0
-estimate x0 = v_to_x0(x_t, v), decoded WITH gradients (VAE: `decode(checkpoint=True)`). With
-physics_first, L_PS is formed with the albedo A_x that the output uses, so it is 0 by construction
-(the identity holds exactly) and lambda_ps has no effect; with the free relit branch it uses the
-ground-truth albedo, as the paper does.
+This Task forms what the objective reads: the batch, the targets, and the decoded x0 estimate
+x0 = v_to_x0(x_t, v), decoded WITH gradients (VAE: `decode(checkpoint=True)`). With physics_first,
+L_PS is formed with the albedo A_x that the output uses, so it is 0 by construction (the identity
+holds exactly) and lambda_ps has no effect; with the free relit branch it uses the ground-truth
+albedo, as the paper does.
 
 `relit_target` (image = the paper; residual; gain = ours, the default) and `relit_resolution`
 (full = the paper; cell = ours): what the relit branch denoises (pilight.relight.encoding). With
@@ -40,7 +35,6 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from pilight.data import schema
 from pilight.data.schema import DataError
@@ -51,9 +45,10 @@ from pilight.eval.grids import labelled_grid
 from pilight.models.relight import RelightModel
 from pilight.models.stack import PREVIEW_SAMPLING
 from pilight.params import RelightParams
-from pilight.physics import make_feature_extractor, masked_mse, physics_loss
+from pilight.physics import make_feature_extractor
 from pilight.physics.calculated import diffuse_calculated
 from pilight.pictures import to_uint8
+from pilight.relight import objective
 from pilight.relight import physics_first as pf
 from pilight.relight.branches import (
     branch_targets,
@@ -190,15 +185,14 @@ class RelightTask(RelightModel):
         ids = torch.arange(V, device=dev).repeat(B)
         v = model(x_t, z_cond, tv, ids, condition_images=maps["image"], drop=drop).float()
         alphas = s.alphas_cumprod(dev)
-        l_v = F.mse_loss(v, s.scheduler.get_velocity(z0, noise, tv).float())
-        lambdas = (p.lambda_ds, p.lambda_ps, p.lambda_rec)
+        l_v = objective.vpred_loss(v, s.scheduler.get_velocity(z0, noise, tv))
         logs = {
             "l_vpred": float(l_v.detach()),
             "pred_conditions": float(use_pred.float().mean()),
             "ds_ps_defined": float(p.decomposition),
             "t_mean": float(t.float().mean()),
         }
-        if not any(lambdas) and not p.lambda_image:  # the no-physics ablation: no decode at all
+        if not objective.needs_decode(p):  # the no-physics ablation: no decode at all
             logs.update(l_ds=0.0, l_ps=0.0, l_rec=0.0, l_physics=0.0, l_image=0.0)
             return l_v, logs
         x0 = v_to_x0(x_t.float(), v, alphas, tv)
@@ -226,19 +220,16 @@ class RelightTask(RelightModel):
             space=self.physics_space,
             ps_on_mask=anc is not None,
         )
-        phys = physics_loss(t.to(dev), terms["ds"], terms["ps"], terms["rec"], lambdas, p.t_min)
+        phys = objective.physics_part(t.to(dev), terms, p)
         logs.update({f"l_{k}": float(v.detach().mean()) for k, v in terms.items()})
         logs["l_physics"] = float(phys.detach())
-        # E2E-FT's task loss where single-step inference runs: the formed relit image against the target,
-        # in display space, on the samples at t = T-1 only (elsewhere x0 is a noisy estimate).
-        terminal = (t == s.scheduler.config.num_train_timesteps - 1).to(dev, torch.float32)
-        l_img = masked_mse(y[:, 0], tonemap(batch["image_b"].to(dev).float()), reduction="none")
-        logs["l_image"] = float((l_img.detach() * terminal).sum() / terminal.sum().clamp_min(1))
-        l_image = p.lambda_image * (l_img * terminal).mean()
+        l_img, logs["l_image"] = objective.image_loss(
+            y[:, 0], batch["image_b"].to(dev), t.to(dev), s.scheduler.config.num_train_timesteps
+        )
+        l_image = p.lambda_image * l_img
         self._calls += 1
         if p.train.grad_share_every and self._calls % p.train.grad_share_every == 0:
-            w = 1.0 / t.to(dev).float().clamp_min(p.t_min)  # each physics term as physics_loss weighs it
-            weighted = {k: (w * lam * terms[k]).mean() for k, lam in zip(("ds", "ps", "rec"), lambdas)}
+            weighted = objective.weighted_terms(t.to(dev), terms, p)
             shares = grad_shares({"vpred": l_v, **weighted, "image": l_image}, _trainable(self.stack.model))
             logs.update(shares)
         return l_v + phys + l_image, logs
