@@ -21,7 +21,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from pilight.eval.photo_measures import detail, exposure, lr_asymmetry  # noqa: E402
+from pilight.eval.photo_measures import detail, exposure, halves_asymmetry  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -52,12 +52,12 @@ def main(argv: list[str] | None = None) -> int:
     out = pipe.relight(photo, ls, absolute=args.absolute, exposure=args.exposure)
     seconds = time.perf_counter() - t0
     rgb = photo.rgb
-    print(f"{photo.name}: {rgb.shape[1]}x{rgb.shape[0]}, asymmetry {lr_asymmetry(rgb):+.3f}; models {models}")
+    print(f"{photo.name}: {rgb.shape[1]}x{rgb.shape[0]}, asymmetry {halves_asymmetry(rgb):+.3f}; models {models}")
     print(f"exposure: {args.exposure}")
     print("| light | asymmetry | detail ratio | exposure ratio | exposure gain |\n|---|---|---|---|---|")
     for light, relit, gain in zip(ls, out.relit, out.exposure_gain):
         print(
-            f"| {light.name} | {lr_asymmetry(relit):+.3f} | {detail(relit) / detail(rgb):.2f} | {exposure(relit, rgb):.2f} "
+            f"| {light.name} | {halves_asymmetry(relit):+.3f} | {detail(relit) / detail(rgb):.2f} | {exposure(relit, rgb):.2f} "
             f"| {gain:.2f} |"
         )
     print(f"{seconds:.2f} s for both lights (one relight call, stage 1 once) on {machine.one_line()}")

@@ -53,7 +53,6 @@ from pathlib import Path
 from pilight.failure import CommandFailure
 from pilight.params import DOMAINS
 
-RELIGHT_MAPS = ("relit", "diffuse", "specular")
 CONTACT_HEIGHT = 512  # contact sheets are at most this tall, so a 24-megapixel photo gives a viewable PNG
 
 

@@ -42,6 +42,7 @@ import torch.nn.functional as F
 from pydantic import Field
 
 from pilight import atomic
+from pilight.data.layout import RELIT_MAPS
 from pilight.detail import resize, with_input_detail
 from pilight.lights import Light
 from pilight.params import DOMAINS, BaseParams, RenderParams, SamplingParams, _Section
@@ -602,16 +603,17 @@ class PILightPipeline:
                 outs.setdefault(key, []).append(v.float().cpu())
         h, w = photo.size
         cat = {key: torch.cat(v) for key, v in outs.items()}
+        lit = {key: cat[key] for key in RELIT_MAPS if key in cat}  # what the light makes (not A_x)
         gain = torch.ones(len(lights))
         if not absolute and exposure == "photo":
-            gain = exposure_gain(cat["relit"], x, m, levels)
-            cat = {key: v * gain[:, None, None, None] for key, v in cat.items()}
+            gain = exposure_gain(lit["relit"], x, m, levels)
+            lit = {key: v * gain[:, None, None, None] for key, v in lit.items()}
         hwc = lambda t: t.clamp_min(0).permute(0, 2, 3, 1).contiguous().numpy()
-        full = {key: hwc(resize(v, (h, w))) for key, v in cat.items()}
+        full = {key: hwc(resize(v, (h, w))) for key, v in lit.items() if key != "relit"}
         # the relit image keeps the photo's full-resolution detail: the change is carried at the processing
         # size and applied to the full-size input (pilight.detail)
         full_input = torch.from_numpy(photo.rgb).permute(2, 0, 1)[None]
-        full["relit"] = hwc(with_input_detail(cat["relit"], cat.get("specular"), x, full_input))
+        full["relit"] = hwc(with_input_detail(lit["relit"], lit.get("specular"), x, full_input))
         return RelightOutput(
             relit=full["relit"],
             diffuse=full.get("diffuse"),

@@ -52,6 +52,9 @@ def tonemap01(x):
     return (hdr_to_model(x.float()) + 1) / 2
 
 
+REC709_LUMINANCE = (0.2126, 0.7152, 0.0722)  # linear RGB -> luminance (Rec. 709 / sRGB primaries)
+
+
 # --- sRGB ---------------------------------------------------------------------------------
 SRGB_KNEE = 0.0031308  # linear value where the curve turns from the line to the power law
 SRGB_KNEE_ENCODED = 0.04045
@@ -81,6 +84,7 @@ __all__ = [
     "hdr_to_model",
     "model_to_hdr",
     "tonemap01",
+    "REC709_LUMINANCE",
     "linear_to_srgb",
     "srgb_to_linear",
 ]

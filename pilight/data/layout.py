@@ -33,6 +33,7 @@ INTRINSIC_MAPS = ("albedo", "normal", "roughness", "metallic")  # what stage 1 p
 VIEW_MAPS = (*INTRINSIC_MAPS, "mask")  # per view: the intrinsics and the mask, shared by the view's lights
 LIGHT_MAPS = ("image", "diffuse", "specular", "ball")
 OPTIONAL_LIGHT_MAPS = ("ball_lambertian",)
+RELIT_MAPS = ("relit", "diffuse", "specular")  # stage 2's outputs, each linear in the target light
 # float32 where the identity image = albedo * diffuse + specular must hold to float precision.
 FLOAT32_MAPS = frozenset({"albedo", "image", "diffuse", "specular"})
 CHANNELS = {

@@ -6,11 +6,14 @@ from __future__ import annotations
 
 import numpy as np
 
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float32)
+from pilight.data.colour import REC709_LUMINANCE
+
+LUMINANCE = np.array(REC709_LUMINANCE, np.float32)
 
 
-def lr_asymmetry(rgb: np.ndarray) -> float:
-    """(R - L) / (R + L) of the mean luminance of the right and left halves: > 0 when the right is brighter."""
+def halves_asymmetry(rgb: np.ndarray) -> float:
+    """(R - L) / (R + L) of the mean luminance of the picture's right and left halves: > 0 when the right is
+    brighter (pilight.eval.light_following.lr_asymmetry sides by the normals instead, where they are known)."""
     y = rgb @ LUMINANCE
     half = y.shape[1] // 2
     left, right = float(y[:, :half].mean()), float(y[:, half:].mean())

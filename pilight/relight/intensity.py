@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import torch
 
+from pilight.data.colour import REC709_LUMINANCE
 from pilight.physics.envmap import light_level
 
 INTENSITIES = ("relative", "absolute")
@@ -66,7 +67,7 @@ def to_source_level(balls: dict[str, torch.Tensor], source: torch.Tensor, found:
 
 def mean_luminance(image: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """(B, 3, H, W) linear RGB and a (1 or B, 1, H, W) mask -> (B,) Rec. 709 luminance averaged on the mask."""
-    y = 0.2126 * image[:, 0] + 0.7152 * image[:, 1] + 0.0722 * image[:, 2]
+    y = (image * image.new_tensor(REC709_LUMINANCE).view(1, 3, 1, 1)).sum(1)
     m = (mask[:, 0] > 0.5).float().expand_as(y)
     return (y * m).sum((-1, -2)) / m.sum((-1, -2)).clamp_min(1)
 

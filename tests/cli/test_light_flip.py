@@ -9,7 +9,7 @@ from __future__ import annotations
 import pytest
 
 from fixtures.tiny_models import REPO
-from pilight.eval.photo_measures import detail, exposure, lr_asymmetry
+from pilight.eval.photo_measures import detail, exposure, halves_asymmetry
 
 MODELS = REPO / "models"
 
@@ -37,10 +37,10 @@ def test_left_versus_right_light_flips_the_relit_asymmetry(astronaut):
     pipe = PILightPipeline.from_pretrained(models, device="cpu", params=REPO / "params.yaml")
     out = pipe.relight(astronaut, [lights.named("left"), lights.named("right")])
     photo = as_photo(astronaut).rgb
-    a_left, a_right = lr_asymmetry(out.relit[0]), lr_asymmetry(out.relit[1])
+    a_left, a_right = halves_asymmetry(out.relit[0]), halves_asymmetry(out.relit[1])
     assert a_left < 0 < a_right, (
         f"relit (R - L) / (R + L) with {models}: {a_left:+.3f} under the left light, {a_right:+.3f} under "
-        f"the right one (the photo itself: {lr_asymmetry(photo):+.3f})"
+        f"the right one (the photo itself: {halves_asymmetry(photo):+.3f})"
     )
     for name, relit in zip(("left", "right"), out.relit):
         kept = detail(relit) / detail(photo)
