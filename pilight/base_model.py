@@ -29,11 +29,11 @@ MUST_MATCH: dict[str, tuple[str, ...]] = {
     "relight": _NETWORK
     + (
         "decomposition",
-        "relit_target",
-        "relit_resolution",
-        "physics_first",
-        "albedo_source",
-        "specular_anchor",
+        "form.kind",
+        "form.target",
+        "form.resolution",
+        "form.albedo_source",
+        "form.specular_anchor",
         "d_calc_condition",
         "ds_ball",
     ),
@@ -63,7 +63,11 @@ def base_folder(stage: str, path: str | None = None) -> Path:
 
 def mismatches(stage: str, wanted: dict, saved: dict) -> list[str]:
     """``key: base has X, params ask for Y`` for every MUST_MATCH key that differs."""
+    from pilight.params import migrate_saved_relight
+
     wanted, saved = _flat(wanted), _flat(saved)
+    if stage == "relight":  # a base saved before stage 2's form was one choice
+        saved = migrate_saved_relight(saved)
     return [
         f"{stage}.{k}: the base has {_get(saved, k)!r}, the params ask for {_get(wanted, k)!r}"
         for k in MUST_MATCH[stage]

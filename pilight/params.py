@@ -6,11 +6,22 @@ milliseconds (not after Blender has started) with the key, the value and what is
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Discriminator,
+    Field,
+    Tag,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from pilight.data.layout import INTRINSIC_MAPS
 
@@ -712,6 +723,118 @@ class IntrinsicsParams(ModelParams):
         return self
 
 
+class FreeRelitForm(_Section):
+    """The paper's form: the relit branch makes the relit image (or, ours, its change of the input);
+    D and S are predicted beside it and enter only the loss."""
+
+    kind: Literal["free"] = "free"
+    target: Literal["image", "residual", "gain"] = Field(
+        "image",
+        description="image = the paper's relit branch; residual = its latent minus the input's latent; "
+        "gain = the log ratio of relit to input display values (both: 'copy the input' is the zero prediction)",
+    )
+    resolution: Literal["full", "cell"] = Field(
+        "full",
+        description="full = a value per pixel (the paper); cell = the relit branch's change is one value "
+        "per codec cell, bilinearly interpolated (smooth by construction; needs residual or gain)",
+    )
+
+    @model_validator(mode="after")
+    def _cell_needs_a_change(self) -> FreeRelitForm:
+        if self.resolution == "cell" and self.target == "image":
+            raise ValueError(
+                "form.resolution 'cell' smooths the relit branch's CHANGE of the input, so it needs "
+                "form.target 'residual' or 'gain', not 'image'"
+            )
+        return self
+
+
+class PhysicsFirstForm(_Section):
+    """Ours (pilight.relight.physics_first): on the mask I_relit = A_x D_pred + S_pred, with D and S
+    predicted as gains on their physics lookups D_calc and S_calc; off the mask the relit branch is a
+    gain on the input. Light enters through physics."""
+
+    kind: Literal["physics_first"] = "physics_first"
+    resolution: Literal["full", "cell"] = Field(
+        "cell", description="full = a gain per pixel; cell = one gain per codec cell, bilinearly interpolated"
+    )
+    albedo_source: Literal["effective", "conditioning"] = Field(
+        "effective",
+        description="A_x: effective = the albedo that explains the input under its own light (the ratio "
+        "form; cancels stage-1 albedo errors); conditioning = the conditioning albedo",
+    )
+    source_light: Literal["estimated", "rendered"] = Field(
+        "estimated",
+        description="the input's own light for albedo_source effective: estimated = fitted to the input "
+        "(pilight.physics.source_light; what a photo gets); rendered = the shards' ball of the input light",
+    )
+    specular_anchor: Literal["lookup", "ggx"] = Field(
+        "ggx",
+        description="S_calc: lookup = the gray ball minus its Lambertian twin read at the normal (knows no "
+        "roughness); ggx = a microfacet highlight of the ball's dominant light with the conditioning "
+        "roughness and Fresnel (pilight.physics.specular_model)",
+    )
+
+    @property
+    def target(self) -> str:
+        """What the relit branch denoises: always the gain (it is the image off the mask only)."""
+        return "gain"
+
+
+def _form_kind(v: Any) -> str | None:
+    return v.get("kind") if isinstance(v, dict) else getattr(v, "kind", None)
+
+
+# One of the two by its `kind` (a callable discriminator: every field of a section has a before-validator,
+# which pydantic's plain `discriminator="kind"` does not allow).
+RelitForm = Annotated[
+    Annotated[FreeRelitForm, Tag("free")] | Annotated[PhysicsFirstForm, Tag("physics_first")],
+    Discriminator(
+        _form_kind,
+        custom_error_type="relit_form_kind",
+        custom_error_message="form.kind must be 'free' (the paper's relit branch) or 'physics_first' (ours)",
+    ),
+]
+
+
+# Stage 2's form before it was one choice: six flat keys of `relight` (config.json of older models).
+FLAT_FORM_KEYS = (
+    "physics_first",
+    "relit_target",
+    "relit_resolution",
+    "albedo_source",
+    "source_light",
+    "specular_anchor",
+)
+
+
+def form_from_flat(relight: dict) -> dict:
+    """The `form` that the flat keys of an earlier version's `relight` section meant (their defaults then:
+    the paper's free image branch at full resolution; lookup specular anchor)."""
+    if relight.get("physics_first", False):
+        return {
+            "kind": "physics_first",
+            "resolution": relight.get("relit_resolution", "full"),
+            "albedo_source": relight.get("albedo_source", "effective"),
+            "source_light": relight.get("source_light", "estimated"),
+            "specular_anchor": relight.get("specular_anchor", "lookup"),
+        }
+    return {
+        "kind": "free",
+        "target": relight.get("relit_target", "image"),
+        "resolution": relight.get("relit_resolution", "full"),
+    }
+
+
+def migrate_saved_relight(relight: dict) -> dict:
+    """A saved stage-2 config (config.json's params) of any version -> this version's keys: the flat
+    form keys become `form`. A config already in this form comes back unchanged."""
+    if not any(k in relight for k in FLAT_FORM_KEYS):
+        return relight
+    kept = {k: v for k, v in relight.items() if k not in FLAT_FORM_KEYS}
+    return {**kept, "form": form_from_flat(relight)}
+
+
 class RelightParams(ModelParams):
     """Stage 2: L = L_vpred + (1/t)(lambda_ds L_DS + lambda_ps L_PS + lambda_rec L_rec)."""
 
@@ -737,40 +860,9 @@ class RelightParams(ModelParams):
         0.5, ge=0.0, le=1.0, description="share of stage-1 predictions when conditions: mix"
     )
     ds_ball: Literal["gray", "lambertian"] = Field("gray", description="ball unfolded for D_calculated (paper: gray)")
-    relit_target: Literal["image", "residual", "gain"] = Field(
-        "image",
-        description="image = the paper's relit branch; residual = its latent minus the input's latent; "
-        "gain = the log ratio of relit to input display values (both: 'copy the input' is "
-        "the zero prediction)",
-    )
-    relit_resolution: Literal["full", "cell"] = Field(
-        "full",
-        description="full = a value per pixel (the paper); cell = the relit branch's change is one value "
-        "per codec cell, bilinearly interpolated (smooth by construction; needs residual or gain)",
-    )
-    physics_first: bool = Field(
-        False,
-        description="true = on the mask I_relit = A_x D_pred + S_pred, D and S predicted as gains on their "
-        "physics lookups D_calc and S_calc (pilight.relight.physics_first); false = the paper's "
-        "free relit branch",
-    )
-    albedo_source: Literal["effective", "conditioning"] = Field(
-        "effective",
-        description="A_x of physics_first: effective = the albedo that explains the input under its own "
-        "light (the ratio form; cancels stage-1 albedo errors); conditioning = the "
-        "conditioning albedo",
-    )
-    source_light: Literal["estimated", "rendered"] = Field(
-        "estimated",
-        description="the input's own light for albedo_source effective: estimated = fitted to the input "
-        "(pilight.physics.source_light; what a photo gets); rendered = the shards' ball of "
-        "the input light",
-    )
-    specular_anchor: Literal["lookup", "ggx"] = Field(
-        "lookup",
-        description="S_calc of physics_first: lookup = the gray ball minus its Lambertian twin read at the "
-        "normal (knows no roughness); ggx = a microfacet highlight of the ball's dominant light "
-        "with the conditioning roughness and Fresnel (pilight.physics.specular_model)",
+    form: RelitForm = Field(
+        FreeRelitForm(),
+        description="how the relit image is formed: free = the paper's relit branch; physics_first = ours",
     )
     intensity: Literal["relative", "absolute"] = Field(
         "absolute",
@@ -789,6 +881,23 @@ class RelightParams(ModelParams):
         "normals) as a condition map; () = the paper",
     )
 
+    @model_validator(mode="before")
+    @classmethod
+    def _one_form(cls, data: Any) -> Any:
+        """The flat keys of earlier versions are refused by name, with the form that says the same."""
+        if isinstance(data, dict) and (flat := [k for k in FLAT_FORM_KEYS if k in data]):
+            if "form" in data:
+                raise ValueError(
+                    f"{', '.join(flat)}: stage 2's output form is one choice now, relight.form; these are its "
+                    "options (physics_first is form.kind, relit_target form.target, relit_resolution "
+                    "form.resolution, the rest keep their names): move them into relight.form"
+                )
+            raise ValueError(
+                f"{', '.join(flat)}: stage 2's output form is one choice now, relight.form; the same model is "
+                f"form: {json.dumps(form_from_flat(data))}"
+            )
+        return data
+
     @field_validator("d_calc_condition")
     @classmethod
     def _d_calc_branches(cls, v: tuple[str, ...]) -> tuple[str, ...]:
@@ -798,16 +907,10 @@ class RelightParams(ModelParams):
 
     @model_validator(mode="after")
     def _dinov2(self, info: ValidationInfo) -> RelightParams:
-        if self.relit_resolution == "cell" and self.relit_target == "image":
+        if self.form.kind == "physics_first" and not self.decomposition:
             raise ValueError(
-                "relit_resolution 'cell' smooths the relit branch's CHANGE of the input, so it needs "
-                "relit_target 'residual' or 'gain', not 'image'"
-            )
-        if self.physics_first and (not self.decomposition or self.relit_target != "gain"):
-            raise ValueError(
-                "physics_first forms the relit image from the diffuse and specular branches and uses the "
-                "relit branch as a gain off the mask, so it needs decomposition: true and relit_target: "
-                f"gain (got decomposition: {self.decomposition}, relit_target: {self.relit_target!r})"
+                "relight.form physics_first forms the relit image from the diffuse and specular branches, so "
+                "it needs decomposition: true (or form: {kind: free} for the ablation without them)"
             )
         if self.rec_features == "dinov2" and not self.dinov2_path:
             raise ValueError("rec_features is 'dinov2' but dinov2_path is not set (a local DINOv2 folder)")

@@ -227,7 +227,7 @@ def load_stage(folder: Path, stage: str, device: torch.device, *, trust_unverifi
     from pilight.models.intrinsics import IntrinsicsModel
     from pilight.models.relight import RelightModel
     from pilight.models.stack import ModelError
-    from pilight.params import IntrinsicsParams, RelightParams
+    from pilight.params import IntrinsicsParams, RelightParams, migrate_saved_relight
 
     d = Path(folder) / stage
     cfg, weights = d / "config.json", d / "model.safetensors"
@@ -248,6 +248,8 @@ def load_stage(folder: Path, stage: str, device: torch.device, *, trust_unverifi
         saved = json.loads(cfg.read_text(encoding="utf-8"))["params"]
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise PipelineError(f"{cfg}: unreadable model config ({exc}); retrain with `dvc repro train_relight`") from None
+    if stage == "relight":
+        saved = migrate_saved_relight(saved)  # a model saved before stage 2's form was one choice
     raw = dict(saved)
     if stage == "relight":
         # Training-only keys that name files of the training machine (the conditions' predictions, the

@@ -4,7 +4,8 @@ default (profiles/paper.yaml: the paper's), composed into a complete params file
     pilight profile profiles/paper.yaml -o params.yaml [--base params.yaml] [--no-check-paths]
 
 An overlay's mappings are merged key by key into the base; any other value (a number, a string, a
-list, null) replaces the base's. A key the base does not have is an error naming it (a typo would
+list, null) replaces the base's, and so does a mapping whose `kind` differs from the base's (another
+choice with other options, such as stage 2's `relight.form`). A key the base does not have is an error naming it (a typo would
 otherwise be dropped or refused later, far from its cause). The result is validated section by
 section through pilight.params before it is written (write, then rename).
 """
@@ -27,7 +28,8 @@ def compose(base: dict, overlay: dict, where: str = "") -> dict:
         if key not in base:
             raise ParamsError(f"{name}: not a key of the base params (a typo?); known here: {sorted(base)}")
         if isinstance(value, dict) and isinstance(base[key], dict):
-            out[key] = compose(base[key], value, f"{name}.")
+            other_choice = "kind" in value and value["kind"] != base[key].get("kind")
+            out[key] = dict(value) if other_choice else compose(base[key], value, f"{name}.")
         elif isinstance(value, dict) != isinstance(base[key], dict):
             raise ParamsError(f"{name}: the base has {type(base[key]).__name__}, the overlay {type(value).__name__}")
         else:

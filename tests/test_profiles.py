@@ -39,6 +39,8 @@ def test_the_overlay_holds_only_keys_that_differ():
 
     def same(base, over, where=""):
         for k, v in over.items():
+            if isinstance(v, dict) and v.get("kind", base[k].get("kind")) != base[k].get("kind"):
+                continue  # another choice replaces the base's mapping whole: every key of it is needed
             if isinstance(v, dict):
                 yield from same(base[k], v, f"{where}{k}.")
             elif v == base[k]:
@@ -57,8 +59,8 @@ def test_weight_paths_are_checked_unless_switched_off(paper_params: Path, tmp_pa
 
 def test_paper_profile_uses_the_free_relit_branch_and_the_papers_renders(paper_params: Path):
     raw = yaml.safe_load(paper_params.read_text())
-    assert raw["relight"]["physics_first"] is False
-    assert raw["relight"]["relit_target"] == "image" and raw["relight"]["relit_resolution"] == "full"
+    # another kind of form replaces the default's mapping (its physics-first options do not leak in)
+    assert raw["relight"]["form"] == {"kind": "free", "target": "image", "resolution": "full"}
     assert raw["relight"]["lambda_image"] == 0 and raw["relight"]["d_calc_condition"] == []
     assert raw["render"]["camera_backdrop"] is None
 

@@ -16,7 +16,7 @@ conditions), `<split>_abs` and `<split>_gt_abs` (absolute), `<split>_anchor`, `<
 `<split>_anchor_abs`, `<split>_gt_anchor_abs` (the zero-gain physics anchor, same four settings) and
 `probes`. `<split>` and `<split>_abs` are required (a folder without `<split>_abs` predates relative
 intensity: rerun the relight stage); the others are scored where present (the anchor exists with
-relight.physics_first, the `_gt` splits when the model's conditions are stage-1 predictions). Each
+relight.form physics_first, the `_gt` splits when the model's conditions are stage-1 predictions). Each
 split present must hold every cross-light pair, and either every identity pair or none.
 
 Checks on the model's ABSOLUTE split (where its D and S are in the truth's units): the decomposition

@@ -145,7 +145,7 @@ def relit_jobs(task, shards: Path, split: str, ip, seed: int, preds: dict | None
     """{split name: (generator, what it holds)}: the splits of the module docstring. The first one
     (the model, relative, every pair) feeds ``stats``."""
     source = "pred" if preds is not None else "gt"
-    anchor = task.describe().get("physics_first", False)
+    anchor = task.physics_first
     jobs = {}
     for intensity, tail in (("relative", ""), ("absolute", "_abs")):
         for method in ("model", "anchor") if anchor else ("model",):

@@ -38,24 +38,21 @@ class RelightModel:
 
     def __init__(self, p: RelightParams):
         self.p = p
-        self.physics_first = p.physics_first
-        self.layout = branch_layout(p.decomposition, p.d_calc_condition, p.physics_first)
+        self.form = p.form
+        self.physics_first = p.form.kind == "physics_first"
+        self.layout = branch_layout(p.decomposition, p.d_calc_condition, self.physics_first)
         self.with_d_calc = any("d_calc" in maps for maps in self.layout.values())
         self.branches = tuple(self.layout)
         self.V = len(self.branches)
-        self.width = cond_width(p.decomposition, p.d_calc_condition, p.physics_first)
+        self.width = cond_width(p.decomposition, p.d_calc_condition, self.physics_first)
         codec_channels = _latent_channels(p)
         self.stack: DiffusionStack = build_stack(p, num_domains=self.V, cond_channels=self.width * codec_channels)
 
     def describe(self) -> dict[str, Any]:
         return {
             **self.stack.describe(),
-            "relit_target": self.p.relit_target,
-            "relit_resolution": self.p.relit_resolution,
-            "physics_first": self.physics_first,
-            "albedo_source": self.p.albedo_source if self.physics_first else None,
-            "source_light": self.p.source_light if self.physics_first else None,
-            "specular_anchor": self.p.specular_anchor if self.physics_first else None,
+            "form": self.form.model_dump(mode="json"),
+            "relit_target": self.form.target,
             "branches": list(self.branches),
             "condition_maps": {b: list(m) for b, m in self.layout.items()},
             "d_calc": f"Lambertian lookup of the {self.p.ds_ball} ball x (1 - metallic)",
@@ -68,11 +65,11 @@ class RelightModel:
         return self
 
     def _input_offset(self, z_cond: torch.Tensor) -> torch.Tensor | None:
-        """(B * V, C, h, w): z(I_in) on the relit items, 0 on the D/S items; None unless relit_target is residual.
+        """(B * V, C, h, w): z(I_in) on the relit items, 0 on the D/S items; None unless form.target is residual.
 
         z(I_in) is read from the relit branch's condition latents (before any CFG drop), so the
         codec encodes the input once per step, not twice."""
-        if self.p.relit_target != "residual":
+        if self.form.target != "residual":
             return None
         lc = self.stack.codec.latent_channels
         i, r = self.layout["relit"].index("image"), self.branches.index("relit")
@@ -83,12 +80,12 @@ class RelightModel:
 
     def _relit_from_output(self, y: torch.Tensor, y_a: torch.Tensor) -> torch.Tensor:
         """Decoded outputs (B, V, 3, H, W) -> the relit branch as an image (gain decoded, cells smoothed)."""
-        p, cell = self.p, self.stack.codec.factor
+        form, cell = self.form, self.stack.codec.factor
         r = self.branches.index("relit")
         out = y[:, r]
-        if p.relit_target == "gain":
-            out = gain_decode(cell_smooth(out, cell) if p.relit_resolution == "cell" else out, y_a)
-        elif p.relit_resolution == "cell":
+        if form.target == "gain":
+            out = gain_decode(cell_smooth(out, cell) if form.resolution == "cell" else out, y_a)
+        elif form.resolution == "cell":
             out = y_a + cell_smooth(out - y_a, cell)
         else:
             return y
@@ -96,8 +93,8 @@ class RelightModel:
 
     @property
     def _cell(self) -> int:
-        """Pixels per side of one physics-first output value: the codec cell with relit_resolution cell, else 1."""
-        return self.stack.codec.factor if self.p.relit_resolution == "cell" else 1
+        """Pixels per side of one physics-first output value: the codec cell with form.resolution cell, else 1."""
+        return self.stack.codec.factor if self.form.resolution == "cell" else 1
 
     def _conditions(
         self, batch: dict, intr: dict[str, torch.Tensor], dev, intensity: str | None = None
@@ -108,36 +105,35 @@ class RelightModel:
         the input's own light and are scaled to its level (pilight.relight.intensity); absolute = as given."""
         image_a, mask = batch["image_a"].to(dev), batch["mask"].to(dev)
         balls = {k: batch[k].to(dev) for k in BALL_KEYS if k in batch}
-        rendered = self.physics_first and self.p.albedo_source == "effective" and self.p.source_light == "rendered"
+        form = self.form
+        effective = self.physics_first and form.albedo_source == "effective"
+        rendered = effective and form.source_light == "rendered"
         if rendered and "ball_a" not in batch:
             raise DataError(
-                "relight.source_light is 'rendered' but the batch has no ball_a (the input's own light "
+                "relight.form.source_light is 'rendered' but the batch has no ball_a (the input's own light "
                 "ball): re-shard with this version, or use source_light: estimated (a photo has no ball)"
             )
         source = None  # the input's own light: (ball, found), when known or needed
         if rendered:
             source = (batch["ball_a"].to(dev), torch.ones(image_a.shape[0], dtype=torch.bool, device=dev))
-        elif (
-            self.physics_first and self.p.albedo_source == "effective" or (intensity or self.p.intensity) == "relative"
-        ):
+        elif effective or (intensity or self.p.intensity) == "relative":
             source = pf.source_balls(image_a, intr, mask, balls["ball_b"].shape[-1])
         if (intensity or self.p.intensity) == "relative":
             balls = to_source_level(balls, *source)
         ball_b = balls["ball_b"]
         if not self.physics_first:
             return condition_images(image_a, intr, ball_b, mask, self.with_d_calc), None, balls
-        effective = self.p.albedo_source == "effective"
         anc = pf.anchors(
             image_a,
             intr,
             mask,
             ball_b,
             balls.get("ball_lambertian_b"),
-            albedo_source=self.p.albedo_source,
+            albedo_source=form.albedo_source,
             ball_a=source[0] if effective else None,
             lambertian_a=batch["ball_lambertian_a"].to(dev) if rendered and "ball_lambertian_a" in batch else None,
             smooth_cell=self._cell,
-            specular=self.p.specular_anchor,
+            specular=form.specular_anchor,
             found=source[1] if effective else None,
         )
         return physics_first_images(image_a, intr, ball_b, mask, anc), anc, balls
@@ -179,9 +175,7 @@ class RelightModel:
         maps, anc, _ = self._conditions(batch, intr, dev, intensity)
         if zero_gains:
             if anc is None:
-                raise ValueError(
-                    "zero_gains is the physics-first anchor; this model has no anchor (physics_first: false)"
-                )
+                raise ValueError("zero_gains is the physics-first anchor; this model has no anchor (form: free)")
             zero = torch.zeros(B, V, 3, *image_a.shape[-2:], device=dev)
             out = self._physics_first_outputs(zero, anc, maps["image"], batch["mask"].to(dev))
             return {k: v.clamp(0, schema.HDR_MAX) for k, v in out.items()}

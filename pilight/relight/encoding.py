@@ -1,6 +1,6 @@
 """How the relit branch's change is encoded, and the tone map the physics terms compare in.
 
-`relit_target: gain` (ours): the relit branch denoises the log ratio of display values,
+`relight.form` target gain (ours; the physics-first form's relit branch too): the relit branch denoises the log ratio of display values,
 G = log((u_b + GAIN_EPS) / (u_a + GAIN_EPS)) / GAIN_SCALE with u = (y + 1) / 2 of the schema's tone
 map, and decodes to u_relit = (u_a + GAIN_EPS) exp(GAIN_SCALE G) - GAIN_EPS. "Copy the input" is the
 zero prediction, and the input's texture enters multiplicatively: where only shading changes, G is
@@ -22,13 +22,13 @@ from pilight.data.colour import hdr_to_model, model_to_hdr
 PHYS_HDR_MAX = 64.0
 Y_PHYS = float(hdr_to_model(np.float64(PHYS_HDR_MAX)))
 TONEMAP_EPS = 1e-6
-GAIN_EPS = 0.05  # display-value floor of relit_target gain (u in [0, 1]; mid-gray 0.18 linear is u ~ 0.42)
+GAIN_EPS = 0.05  # display-value floor of the gain target (u in [0, 1]; mid-gray 0.18 linear is u ~ 0.42)
 GAIN_SCALE = 2.0  # G = log ratio / GAIN_SCALE: |G| <= log(1.05 / 0.05) / 2 = 1.52, the range of the other targets
 GAIN_MAX = float(np.log((1.0 + GAIN_EPS) / GAIN_EPS) / GAIN_SCALE)
 
 
 def gain_encode(y_b: torch.Tensor, y_a: torch.Tensor) -> torch.Tensor:
-    """relit_target gain: model-space target y_b and input y_a ([-1, 1)) -> G (module docstring)."""
+    """The gain target: model-space target y_b and input y_a ([-1, 1)) -> G (module docstring)."""
     u_b, u_a = (y_b.float() + 1) / 2, (y_a.float() + 1) / 2
     return torch.log((u_b.clamp_min(0) + GAIN_EPS) / (u_a.clamp_min(0) + GAIN_EPS)) / GAIN_SCALE
 

@@ -1,4 +1,4 @@
-"""Physics-first relit output (ours; `relight.physics_first`): physics carries the light, the network
+"""Physics-first relit output (ours; `relight.form: {kind: physics_first}`): physics carries the light, the network
 learns only what physics lacks.
 
 On the mask the relit image is FORMED by the paper's own identity (eq. ADS),
@@ -9,7 +9,7 @@ so the identity holds to float precision, and each of D and S is predicted as a 
 alone says under the target light b (pilight.physics.calculated):
 
     D_pred = (D_calc_b + eps_b) exp(GAIN * g_D) - eps_b        D_calc_b = lookup(unfold(ball_b), N) (1 - m)
-    S_pred = (S_calc_b + eps_b) exp(GAIN * g_S) - eps_b        S_calc_b: `relight.specular_anchor`
+    S_pred = (S_calc_b + eps_b) exp(GAIN * g_S) - eps_b        S_calc_b: `form.specular_anchor`
 
 S_calc_b is ``lookup``: F(m, A) lookup(ball_b - lambertian_b, N), the gray ball's own highlight (a
 0.5-rough dielectric's) read at the normal; or ``ggx``: the microfacet highlight of ball_b's dominant
@@ -20,7 +20,7 @@ level(ball_b) keeps the log finite where physics says 0 and scales with the ligh
 is linear in the target light's strength when the network sees the light only through maps divided
 by its level (pilight.relight.branches): doubling the ball doubles I_relit on the mask.
 
-A_x (`relight.albedo_source`) is the albedo the composition uses:
+A_x (`form.albedo_source`) is the albedo the composition uses:
 
 * ``effective``: the albedo that explains the INPUT under its own light a, with the same physics,
 
@@ -29,7 +29,7 @@ A_x (`relight.albedo_source`) is the albedo the composition uses:
   so I_relit = I_a (A_eff D_pred + S_pred) / (A_eff D_calc_a + S_calc_a) on lit diffuse pixels: the
   ratio form. The input's texture passes through exactly, and stage-1 albedo errors (12.8 dB) cancel;
   where light a barely reaches a pixel (D_calc_a << eps_a) A_eff falls back to the conditioning
-  albedo A_c. Light a is what the input shows of it: ``relight.source_light: estimated`` fits its
+  albedo A_c. Light a is what the input shows of it: ``form.source_light: estimated`` fits its
   Lambertian ball to the input and the conditioning albedo and normals (pilight.physics.source_light),
   the same for the shards and for a photo, so the model needs no more inputs than the paper's; on the
   test pairs that anchor beats the one from the rendered ball (README). ``rendered`` uses the
@@ -43,7 +43,7 @@ I_relit = I_b when g_D and g_S are right. Off the mask (backdrop, glass, emitter
 branch's own output is used, as the display-space gain on the input (pilight.relight.encoding); on
 the mask its target is 0.
 
-With ``smooth_cell`` > 1 (relit_resolution: cell) every lookup is cell-smoothed before use. A lookup
+With ``smooth_cell`` > 1 (form.resolution: cell) every lookup is cell-smoothed before use. A lookup
 with stage-1 normals has pixel-scale errors that the input does not have; smoothed, the ratio
 A_eff D_calc_b = I_a D_calc_b / D_calc_a keeps the INPUT's texture, and the relit image's fine
 structure is the input's (oracle SSIM 0.865 against 0.706 unsmoothed, stage-1 conditions).

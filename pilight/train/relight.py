@@ -4,8 +4,8 @@ pilight.train.loop.train runs.
 
 The parts, each in a file named for it under pilight/relight/:
 - branches.py: the three branches (relit, diffuse, specular) and the condition maps each reads;
-- encoding.py: how the relit branch's change is encoded (relit_target gain) and the physics tone map;
-- physics_first.py: the physics-first output (ours, relight.physics_first): on the mask
+- encoding.py: how the relit branch's change is encoded (form.target gain) and the physics tone map;
+- physics_first.py: the physics-first output (ours, relight.form kind physics_first): on the mask
   I_relit = A_x D_pred + S_pred with D and S as gains on their physics lookups;
 - physics_terms.py: the paper's L_DS, L_PS, L_rec;
 - objective.py: the whole loss, L = L_vpred + (1/max(t, t_min)) (lambda_ds L_DS + lambda_ps L_PS +
@@ -18,8 +18,9 @@ L_PS is formed with the albedo A_x that the output uses, so it is 0 by construct
 holds exactly) and lambda_ps has no effect; with the free relit branch it uses the ground-truth
 albedo, as the paper does.
 
-`relit_target` (image = the paper; residual; gain = ours, the default) and `relit_resolution`
-(full = the paper; cell = ours): what the relit branch denoises (pilight.relight.encoding). With
+`relight.form` (pilight.params): what the relit branch denoises (pilight.relight.encoding). The free
+form (the paper's) has its `target` (image = the paper; residual; gain = ours) and `resolution`
+(full = the paper; cell = ours); physics_first (ours, the default) always denoises a gain. With
 `cell`, the change is one value per codec cell (the pixel-unshuffle factor, or the VAE's 8),
 bilinearly interpolated: targets are cell means, outputs are cell-smoothed. Why: SSIM barely
 notices a smooth error, but a small UNet's per-pixel errors inside its 4x4 cells read as noise over
@@ -132,11 +133,11 @@ class RelightTask(RelightModel):
 
     def _relit_target(self, y_b: torch.Tensor, y_a: torch.Tensor) -> torch.Tensor:
         """The relit branch's target image (B, 3, H, W) before encoding: y_b, G (gain), cell means."""
-        p, cell = self.p, self.stack.codec.factor
-        if p.relit_target == "gain":
+        form, cell = self.form, self.stack.codec.factor
+        if form.target == "gain":
             g = gain_encode(y_b, y_a)
-            return cell_mean(g, cell) if p.relit_resolution == "cell" else g
-        if p.relit_resolution == "cell":  # residual: the latent offset z(y_a) is subtracted after encoding
+            return cell_mean(g, cell) if form.resolution == "cell" else g
+        if form.resolution == "cell":  # residual: the latent offset z(y_a) is subtracted after encoding
             return y_a + cell_mean(y_b - y_a, cell)
         return y_b
 

@@ -6,13 +6,11 @@ from __future__ import annotations
 import pytest
 import torch
 
-from fixtures.relight_pairs import ONE_STEP, physics_pair, tiny_relight_task
+from fixtures.relight_pairs import ONE_STEP, TINY, physics_pair, tiny_relight_task
 from pilight.physics.calculated import diffuse_calculated
 from pilight.physics.envmap import light_level
 from pilight.relight import physics_first as pf
 from pilight.relight.intensity import relative_light, relative_pair, to_source_level
-
-GGX = {"specular_anchor": "ggx"}
 
 
 def _relit(task, batch, albedo_scale: float, intensity: str) -> dict:
@@ -35,7 +33,7 @@ def test_albedo_level_cancels_in_relative_mode_on_diffuse_pixels(tmp_path, specu
     its own). With `ggx` the input's own estimated highlight S_a (F0 = 0.04 whatever the albedo, at the
     estimated light's level) is subtracted before A_eff and does not cancel: 2.3% of A_x D on average over
     the lit pixels of this 0.5-rough sphere. The absolute relight doubles in both."""
-    task = tiny_relight_task(tmp_path, specular_anchor=specular)
+    task = tiny_relight_task(tmp_path, form={**TINY["form"], "specular_anchor": specular})
     b = physics_pair()
     lit = _diffuse_lit(b)
     diffuse_part = lambda out: out["relit"] - out["specular"]  # A_x D on the mask
@@ -49,7 +47,7 @@ def test_albedo_level_cancels_in_relative_mode_on_diffuse_pixels(tmp_path, specu
 def test_the_dielectric_highlight_does_not_cancel(tmp_path):
     """S_calc (GGX, F0 = 0.04 whatever the albedo) follows the estimated light's level: with twice the albedo
     the relative relight's specular part halves while its diffuse part stays."""
-    task = tiny_relight_task(tmp_path, specular_anchor="ggx")
+    task = tiny_relight_task(tmp_path, form={**TINY["form"], "specular_anchor": "ggx"})
     b = physics_pair()
     b["roughness"] = torch.full_like(b["roughness"], 0.2)  # a visible highlight
     one, two = _relit(task, b, 1.0, "relative"), _relit(task, b, 2.0, "relative")
@@ -84,7 +82,7 @@ def test_own_light_at_k1_returns_the_photo(tmp_path):
     tolerance the anchor achieves: the mean error is 1.1% of the mean on the mask, the largest 5.8% of a
     lit pixel's value. Not exact because A_eff blends in eps_a A_c, and A_c D_a (the SH estimate) differs
     from the render by the estimate's misfit. Off the mask the photo is untouched."""
-    task = tiny_relight_task(tmp_path, specular_anchor="ggx")
+    task = tiny_relight_task(tmp_path, form={**TINY["form"], "specular_anchor": "ggx"})
     b = physics_pair()
     intr = {k: b[k] for k in ("albedo", "normal", "metallic", "roughness")}
     own, found = pf.source_balls(b["image_a"], intr, b["mask"], b["ball_b"].shape[-1])

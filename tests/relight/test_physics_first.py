@@ -92,7 +92,7 @@ def test_loss_trains_every_branch_and_is_finite(tmp_path):
 def test_rendered_source_light_needs_the_input_ball(tmp_path):
     from pilight.data.schema import DataError
 
-    task = tiny_relight_task(tmp_path, source_light="rendered")
+    task = tiny_relight_task(tmp_path, form={**TINY["form"], "source_light": "rendered"})
     b = physics_pair()
     del b["ball_a"]
     with pytest.raises(DataError, match="ball_a"):
@@ -122,7 +122,7 @@ def test_an_image_whose_light_cannot_be_estimated_keeps_the_conditioning_albedo(
     assert not torch.equal(anc.albedo[1], intr["albedo"][1])
 
 
-@pytest.mark.parametrize("bad", [{"decomposition": False}, {"relit_target": "residual", "relit_resolution": "full"}])
+@pytest.mark.parametrize("bad", [{"decomposition": False}, {"form": {"kind": "physics_first", "target": "residual"}}])
 def test_physics_first_refuses_layouts_it_cannot_form(bad):
     with pytest.raises(ValueError, match="physics_first"):
         RelightParams.model_validate({**TINY, **bad})

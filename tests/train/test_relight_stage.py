@@ -280,7 +280,7 @@ def test_train_relight_evaluate_scripts(shards, preds, tmp_path):
     assert rel["residual_abs_mean"]["ground_truth"] < 0.05
     # physics_first (the repo's default): the identity on the mask, and the light-following measures
     splits = {"test", "test_gt", "test_abs", "test_gt_abs", "test_anchor", "test_anchor_abs", "probes"}
-    assert index["parts"]["physics_first"] and splits <= set(index["splits"])
+    assert index["parts"]["form"]["kind"] == "physics_first" and splits <= set(index["splits"])
     assert timing["identity_residual_relative"] < 1e-6  # float32 outputs, before the float16 EXRs
     assert rel["identity_residual_relative"] < 2e-3  # from the float16 EXRs
     lf = rel["light_following"]
@@ -346,11 +346,13 @@ def test_empty_shard_list_is_an_error(tmp_path):
     [("image", "full"), ("residual", "full"), ("gain", "full"), ("residual", "cell"), ("gain", "cell")],
 )
 def test_residual_target_makes_the_zero_prediction_copy_the_input(shards, monkeypatch, target, resolution):
-    """relit_target residual or gain: x0 = 0 decodes to the input image on the relit branch, and D, S are untouched."""
+    """form.target residual or gain: x0 = 0 decodes to the input image on the relit branch, and D, S are untouched."""
     from pilight.data import schema
 
     task = RelightTask(
-        _p(relit_target=target, relit_resolution=resolution, schedule={"rescale_zero_snr": True}), shards, seed=0
+        _p(form={"kind": "free", "target": target, "resolution": resolution}, schedule={"rescale_zero_snr": True}),
+        shards,
+        seed=0,
     )  # x_T is pure noise
     monkeypatch.setattr(task.stack.model, "forward", lambda x, *a, **k: torch.zeros_like(x))  # v = 0 -> x0 = -v = 0
     b = _batch(shards)
@@ -370,7 +372,7 @@ def test_residual_target_makes_the_zero_prediction_copy_the_input(shards, monkey
 
 @pytest.mark.parametrize("target", ["residual", "gain"])
 def test_cell_resolution_ignores_everything_inside_a_cell(shards, monkeypatch, target):
-    """relit_resolution cell: a model output with zero mean in every codec cell changes nothing (the relit
+    """form.resolution cell: a model output with zero mean in every codec cell changes nothing (the relit
     image is the input), while the same output at full resolution does; the training targets are cell-constant."""
     from pilight.data import schema
     from pilight.diffusion.codec import cell_mean
@@ -380,7 +382,9 @@ def test_cell_resolution_ignores_everything_inside_a_cell(shards, monkeypatch, t
     out = {}
     for resolution in ("cell", "full"):
         task = RelightTask(
-            _p(relit_target=target, relit_resolution=resolution, schedule={"rescale_zero_snr": True}), shards, seed=0
+            _p(form={"kind": "free", "target": target, "resolution": resolution}, schedule={"rescale_zero_snr": True}),
+            shards,
+            seed=0,
         )
         f = task.stack.codec.factor
 
@@ -414,8 +418,8 @@ def test_gain_round_trip_and_bounds():
 
 
 def test_cell_resolution_needs_a_change_target():
-    with pytest.raises(ValueError, match="relit_resolution 'cell' .* needs relit_target 'residual' or 'gain'"):
-        _p(relit_target="image", relit_resolution="cell")
+    with pytest.raises(ValueError, match="form.resolution 'cell' .* needs form.target 'residual' or 'gain'"):
+        _p(form={"kind": "free", "target": "image", "resolution": "cell"})
 
 
 def test_flip_check_tells_a_shading_that_follows_n_from_one_that_does_not(shards):
