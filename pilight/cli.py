@@ -217,6 +217,15 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("-o", "--out", type=Path, required=True, metavar="OUT")
     b.add_argument("--size", type=int, default=256, help="ball image size in pixels")
     _light_options(b)
+    a = sub.add_parser(
+        "app",
+        help="relight in the browser, the light following the pointer (the app extra: pip install -e '.[app]')",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=__doc__,
+    )
+    a.add_argument("--port", type=int, default=7860, help="port to serve on (default 7860)")
+    a.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
+    _model_options(a, "relight")
     pr = sub.add_parser(
         "profile",
         help="compose a profile overlay (e.g. profiles/paper.yaml) with params.yaml",
@@ -781,6 +790,33 @@ def cmd_ball(args) -> int:
     return 0
 
 
+def model_arguments(args) -> list[str]:
+    """The model and sampling options a user gave, as command-line words (the app's reproducing command)."""
+    given = [
+        ("--models", args.models if args.models != Path("models") else None),
+        ("--resolution", args.resolution),
+        ("--mode", args.mode),
+        ("--steps", args.steps),
+        ("--cfg", args.cfg),
+        ("--ensemble", args.ensemble),
+    ]
+    return [w for flag, v in given if v is not None for w in (flag, str(v))]
+
+
+def cmd_app(args) -> int:
+    if not 1 <= args.port <= 65535:
+        raise CommandFailure(f"--port must lie in [1, 65535], got {args.port}", 2)
+    try:
+        from pilight.app.ui import launch
+    except ImportError as exc:
+        raise CommandFailure(f"the app needs its extra ({exc}): pip install -e '.[app]'", 2) from None
+    extra = model_arguments(args)  # before _pipeline replaces the default --models by the shipped base
+    pipe = _pipeline(args, "relight")
+    print(f"pilight app: http://{args.host}:{args.port} (Ctrl+C stops it)", file=sys.stderr)
+    launch(pipe, port=args.port, host=args.host, models_note=f"Models: `{args.models}`.", extra_args=extra)
+    return 0
+
+
 def cmd_profile(args) -> int:
     from pilight.params import ParamsError
     from pilight.profiles import write_profile
@@ -796,9 +832,13 @@ def cmd_profile(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return {"decompose": cmd_decompose, "relight": cmd_relight, "ball": cmd_ball, "profile": cmd_profile}[
-            args.command
-        ](args)
+        return {
+            "decompose": cmd_decompose,
+            "relight": cmd_relight,
+            "ball": cmd_ball,
+            "app": cmd_app,
+            "profile": cmd_profile,
+        }[args.command](args)
     except CommandFailure as exc:
         print(f"pilight {args.command}: {exc}", file=sys.stderr)
         return exc.code

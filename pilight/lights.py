@@ -195,6 +195,15 @@ def hdri_world_to_camera(rotate_deg: float) -> torch.Tensor:
     return _WORLD_TO_CAMERA @ rz
 
 
+def check_panorama(h: int, w: int, name: str) -> None:
+    """LightError unless h x w is an equirectangular (lat-long) panorama, exactly 2:1."""
+    if w != 2 * h:
+        raise LightError(
+            f"{name}: {w}x{h} is not an equirectangular (lat-long) panorama; its width must be exactly "
+            "twice its height (2:1)"
+        )
+
+
 def from_hdri(
     hdri, rotate_deg: float = 0.0, intensity: float = 1.0, size: int = BALL_SIZE, name: str = "hdri"
 ) -> Light:
@@ -205,12 +214,7 @@ def from_hdri(
     if not math.isfinite(rotate_deg):
         raise LightError(f"--rotate must be finite, got {rotate_deg}")
     photo = as_photo(hdri, name)
-    h, w = photo.size
-    if w != 2 * h:
-        raise LightError(
-            f"{name}: {w}x{h} is not an equirectangular (lat-long) panorama; its width must be exactly "
-            "twice its height (2:1)"
-        )
+    check_panorama(*photo.size, name)
     t = torch.from_numpy(photo.rgb).permute(2, 0, 1) * intensity
     ball = ball_from_hdri(t, hdri_world_to_camera(rotate_deg), size=size)[0]
     rot = "" if rotate_deg == 0 else f"_rot{rotate_deg:g}"
