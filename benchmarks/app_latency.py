@@ -85,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
         app = launch(pipe, port=port, block=False)
         try:
             client = Client(f"http://127.0.0.1:{port}/", verbose=False)
-            client.predict(handle_file(str(photo_path)), 0, 1.0, True, api_name="/open_photo")
+            client.predict(handle_file(str(photo_path)), "default", 0, 1.0, True, api_name="/open_photo")
             trip = []
             for i, x in enumerate(xs):
                 t0 = time.perf_counter()

@@ -53,11 +53,13 @@ class PhotoSession:
     path: Path
     decomposition: DecompositionOutput
     source_ball: np.ndarray  # (S, S, 3) uint8: the light the photo was lit by, as estimated
+    resolution: int | None = None  # processing size of the longer side (None: the models' own; 0: the photo's)
     last: Relit | None = field(default=None, repr=False)
 
     @classmethod
-    def open(cls, pipe: PILightPipeline, path: str | Path | None) -> PhotoSession:
-        """Read, check and decompose an uploaded file. AppError for anything a user can fix."""
+    def open(cls, pipe: PILightPipeline, path: str | Path | None, resolution: int | None = None) -> PhotoSession:
+        """Read, check and decompose an uploaded file at the processing ``resolution`` (the CLI's
+        --resolution). AppError for anything a user can fix."""
         if path is None:
             raise AppError("no photo: upload a picture (PNG, JPEG, TIFF, WebP, BMP, EXR or HDR)")
         path = Path(path)
@@ -69,15 +71,15 @@ class PhotoSession:
                     "scale it down, or use `pilight relight` with --resolution"
                 )
             check_size(h, w, path.name)
-            pipe.check_memory(h, w, 1, name=path.name)
+            pipe.check_memory(h, w, 1, name=path.name, resolution=resolution)
             photo = read_photo(path)
         except (PhotoError, MemoryLimitError) as exc:
             raise AppError(str(exc).replace(str(path), path.name)) from None
         try:
-            decomposition = pipe.decompose(photo, name=path.name)
+            decomposition = pipe.decompose(photo, name=path.name, resolution=resolution)
         except (PhotoError, PipelineError) as exc:
             raise AppError(str(exc)) from None
-        return cls(pipe, photo, path, decomposition, _source_ball(pipe, decomposition))
+        return cls(pipe, photo, path, decomposition, _source_ball(pipe, decomposition), resolution)
 
     def maps(self) -> dict[str, np.ndarray]:
         """Stage 1's maps as 8-bit pictures, and the estimated light as a ball."""
@@ -98,6 +100,7 @@ class PhotoSession:
                 self.photo,
                 light,
                 intrinsics=self.decomposition,
+                resolution=self.resolution,
                 name=self.path.name,
                 exposure="photo" if keep_exposure else "light",
             )

@@ -124,10 +124,10 @@ def build_app(pipe: PILightPipeline, models_note: str = "", extra_args: list[str
 
         return show
 
-    def on_photo(path, state: AppState, rotate, hdri_k, keep):
+    def on_photo(path, resolution: str, state: AppState, rotate, hdri_k, keep):
         state = state or AppState()
         try:
-            session = PhotoSession.open(pipe, path)
+            session = PhotoSession.open(pipe, path, None if resolution == "default" else int(resolution))
         except AppError as exc:
             state.session = None
             return state, [], picker_picture(state.specs, PICKER_SIZE), None, None, None, f"**Error:** {exc}"
@@ -197,8 +197,14 @@ def build_app(pipe: PILightPipeline, models_note: str = "", extra_args: list[str
             return None, "", "**Error:** nothing to download yet: upload a photo and place a light"
         single = len(state.specs) == 1 and state.specs[0].white and state.hdri is None
         direction = (state.specs[0].azimuth, state.specs[0].elevation) if single else None
+        extra = list(extra_args or [])
+        if state.session.resolution is not None:  # the page's processing size replaces the command line's
+            if "--resolution" in extra:
+                i = extra.index("--resolution")
+                del extra[i : i + 2]
+            extra += ["--resolution", str(state.session.resolution)]
         command = relight_command(
-            state.session.path.name, state.session.last.light, keep_exposure=keep, direction=direction, extra=extra_args
+            state.session.path.name, state.session.last.light, keep_exposure=keep, direction=direction, extra=extra
         )
         files = state.session.export(command)
         return [str(f) for f in files], command, f"{len(files)} files ready."
@@ -212,6 +218,13 @@ def build_app(pipe: PILightPipeline, models_note: str = "", extra_args: list[str
         with gr.Row():
             with gr.Column(scale=1):
                 photo = gr.File(label="Photo", file_types=PHOTO_TYPES, type="filepath", elem_id="photo")
+                resolution = gr.Dropdown(
+                    [(f"the models' ({pipe.config.processing_resolution} px)", "default")]
+                    + [(f"{r} px", str(r)) for r in (256, 512, 768)]
+                    + [("the photo's own size", "0")],
+                    value="default",
+                    label="Processing size (longer side; the CLI's --resolution)",
+                )
                 gallery = gr.Gallery(label="Decomposition and estimated light", columns=3, height="auto")
             with gr.Column(scale=1):
                 picker = gr.Image(
@@ -250,7 +263,8 @@ def build_app(pipe: PILightPipeline, models_note: str = "", extra_args: list[str
         common = [rotate, hdri_k, keep]
         shown = [picker, relit, diffuse, specular, status]
         live = {"trigger_mode": "always_last", "show_progress": "hidden"}
-        photo.change(on_photo, [photo, state, *common], [state, gallery, *shown], api_name="open_photo")
+        photo.change(on_photo, [photo, resolution, state, *common], [state, gallery, *shown], api_name="open_photo")
+        resolution.change(on_photo, [photo, resolution, state, *common], [state, gallery, *shown], api_name=False)
         controls = [azimuth, elevation, intensity, colour, state, *common]
         for c in (azimuth, elevation, intensity):
             c.input(on_controls, controls, [state, *shown], api_name=False, **live)

@@ -24,10 +24,10 @@ def client():
         yield Client(url, verbose=False)
 
 
-def _upload(client, path):
+def _upload(client, path, resolution: str = "default"):
     from gradio_client import handle_file
 
-    return client.predict(handle_file(str(path)), *COMMON, api_name=OPEN)
+    return client.predict(handle_file(str(path)), resolution, *COMMON, api_name=OPEN)
 
 
 def _relit(client, azimuth: float) -> tuple[np.ndarray, str]:
@@ -97,3 +97,22 @@ def test_an_hdri_lights_the_photo_and_turning_it_turns_the_light(client, tmp_pat
         assert out[-1].startswith("Relit in"), out[-1]
         asym[turn] = halves_asymmetry((np.asarray(Image.open(out[1]).convert("RGB"), np.float32) / 255) ** 2.2)
     assert asym[0] < -0.05 and asym[180] > 0.05, asym
+
+
+def test_the_processing_size_chosen_in_the_page_goes_into_the_command(client, astronaut_png):
+    _upload(client, astronaut_png, resolution="256")
+    picture, status = _relit(client, 45)
+    assert status.startswith("Relit in") and picture.shape == (512, 512, 3)
+    _, command, _ = client.predict(True, api_name=EXPORT)
+    assert command.endswith("--resolution 256 -o relit"), command
+
+
+@pytest.mark.xfail(
+    strict=True,  # an unexpected pass fails CI: whoever makes it pass removes this marker (and the CLI's)
+    reason="issue #33, open: the shipped base reads the portrait as a room (tests/cli/test_light_flip.py); "
+    "the app relights it as the CLI does, so its asymmetry moves with the light but does not flip",
+)
+def test_the_astronaut_flips_between_light_from_the_left_and_from_the_right(client, astronaut_png):
+    _upload(client, astronaut_png)
+    a_left, a_right = (halves_asymmetry(_relit(client, az)[0] ** 2.2) for az in (-90, 90))
+    assert a_left < 0 < a_right, (a_left, a_right)
