@@ -273,6 +273,13 @@ class SceneParams(_Section):
     room_fraction: float = Field(
         0.5, ge=0.0, le=1.0, description="share of room/ground scenes; the rest are object scenes"
     )
+    closeup_fraction: float = Field(
+        0.0,
+        ge=0.0,
+        le=1.0,
+        description="share of close-up scenes, framed like a portrait: one subject filling most of the picture "
+        "at eye level before a wall or nothing, no floor in view; drawn from the object scenes' share",
+    )
     objects_object_scene: IntRange = IntRange(lo=1, hi=2)
     objects_room_scene: IntRange = IntRange(lo=3, hi=5)
     shapes: tuple[str, ...] = SHAPES
@@ -301,6 +308,15 @@ class SceneParams(_Section):
         "colours, roughness, metal and patterns go together, drawn by material_classes' weights",
     )
     material_classes: MaterialClassWeights = MaterialClassWeights()
+
+    @model_validator(mode="after")
+    def _kinds(self):
+        if self.room_fraction + self.closeup_fraction > 1.0:
+            raise ValueError(
+                f"room_fraction ({self.room_fraction}) + closeup_fraction ({self.closeup_fraction}) must not "
+                "exceed 1 (the rest are object scenes)"
+            )
+        return self
 
     @field_validator("shapes")
     @classmethod

@@ -187,6 +187,10 @@ def _plane(name: str, size: float, location, rotation, material):
 def _backdrop(spec: dict | None, ground_z: float) -> None:
     if spec is None:
         return
+    if spec["type"] == "wall":  # close-up scenes: a wall behind the subject, placed by the spec, no floor
+        wall = make_material("backdrop_wall", spec["material"])
+        _plane("wall", 12.0, spec["location"], [math.radians(a) for a in spec["rotation_deg"]], wall)
+        return
     floor = make_material("backdrop_floor", spec["material"])
     _plane("floor", 12.0 if spec["type"] == "ground" else 7.0, (0, 0, ground_z), (0, 0, 0), floor)
     if spec["type"] == "room":  # an open room corner: back and left walls, no ceiling

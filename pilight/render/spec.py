@@ -15,6 +15,11 @@ Variety beyond the paper, for the base model, each off by default and then drawi
 default's specs keep every draw (tests/render/test_variety_spec.py pins them): per-axis stretch of
 objects (render.scene.stretch), material classes (render.scene.material_model, material_classes.py)
 and the procedural sky in place of the point light and HDRI (render.light.sky_probability).
+Close-up scenes (render.scene.closeup_fraction, off by default: the share is cut from the object
+scenes' without a new draw) frame one subject like a portrait: it fills half to nine tenths of the
+picture's half-height, the camera at eye level (within 10 degrees of the horizon), a wall behind it or
+nothing, never a floor. Object and room scenes always show the ground under their objects, which
+taught stage 1 that the bottom of a picture faces up: on a portrait it read the sitter as a floor.
 """
 
 from __future__ import annotations
@@ -169,6 +174,47 @@ def _object_views(rng, p: RenderParams, radius: float) -> list[dict]:
     return views
 
 
+SENSOR_HALF_MM = 18.0  # Blender's default sensor: 36 mm wide, fitted to the longer side (square renders)
+
+
+def _closeup(rng, p: RenderParams) -> tuple[list[dict], dict | None, list[dict]]:
+    """A subject at the origin filling a fraction f of the picture's half-height, seen at eye level from
+    one side (every view within 25 degrees of azimuth of it), a second, smaller object beside or behind it
+    in half the scenes, and in 60% of them a wall behind both, facing the camera side; no floor."""
+    size = float(rng.uniform(0.6, 1.0))
+    objects = [_object(rng, p, [0.0, 0.0, 0.0], size)]
+    side = rng.uniform(0, 2 * math.pi)  # the azimuth the cameras look from
+    toward = np.array([math.cos(side), math.sin(side), 0.0])  # from the subject toward the cameras
+    across = np.array([-toward[1], toward[0], 0.0])
+    if rng.uniform() < 0.5:
+        second = float(rng.uniform(0.3, 0.6))
+        at = rng.uniform(-1.5, 1.5) * across - rng.uniform(0.0, 1.2) * toward + [0.0, 0.0, rng.uniform(-0.8, 0.8)]
+        objects.append(_object(rng, p, at, second))
+    backdrop = None
+    if rng.uniform() < 0.6:
+        at = -(size + rng.uniform(0.8, 2.5)) * toward  # behind the subject (and the second object)
+        # Blender's plane faces +z; rotated (90, 0, phi) degrees it faces (sin phi, -cos phi, 0) = toward
+        phi = side + math.pi / 2
+        backdrop = {
+            "type": "wall",
+            "material": _material(rng, p),
+            "location": np.round(at, 4).tolist(),
+            "rotation_deg": [90.0, 0.0, round(math.degrees(phi) % 360, 3)],
+        }
+    views = []
+    for _ in range(p.views_per_scene):
+        fill = rng.uniform(0.5, 0.9)  # the subject's radius over the picture's half-height
+        lens = float(rng.uniform(35.0, 85.0))
+        distance = size / (fill * SENSOR_HALF_MM / lens)
+        az = side + math.radians(rng.uniform(-25.0, 25.0))
+        el = math.radians(rng.uniform(-10.0, 10.0))
+        look = rng.uniform(-0.3, 0.3, 2) * size  # off centre, across and up
+        target = look[0] * across + [0.0, 0.0, look[1]]
+        eye = target + distance * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        views.append(_look_view(eye, target, lens_mm=round(lens, 3)))
+    return objects, backdrop, views
+
+
 def _room_views(rng, p: RenderParams) -> list[dict]:
     base_eye, target = np.array([0.0, -4.5, 1.4]), np.array([0.0, 0.0, 0.6])
     forward = (target - base_eye) / np.linalg.norm(target - base_eye)
@@ -281,7 +327,10 @@ def scene_spec(p: RenderParams, seed: int, split: str, index: int) -> dict:
     if split not in SPLITS:
         raise ValueError(f"unknown split {split!r}; allowed: {SPLITS}")
     rng = scene_rng(seed, split, index)
-    kind = "room" if rng.uniform() < p.scene.room_fraction else "object"
+    u = rng.uniform()  # one draw picks the kind whatever the shares: a share of 0 changes no later draw
+    kind = "room" if u < p.scene.room_fraction else "object"
+    if kind == "object" and u < p.scene.room_fraction + p.scene.closeup_fraction:
+        kind = "closeup"
     # Held-out HDRIs appear only in the test split.
     hdris = p.hdri.names if split == "test" else tuple(n for n in p.hdri.names if n not in p.hdri.test_holdout)
     if split == "test" and p.hdri.test_holdout:
@@ -295,6 +344,9 @@ def scene_spec(p: RenderParams, seed: int, split: str, index: int) -> dict:
         backdrop = {"type": "ground", "material": _material(rng, p)} if rng.uniform() < 0.5 else None
         target = [0.0, 0.0, 0.0]
         views = _object_views(rng, p, radius=1.2 if n > 1 else 1.0)
+    elif kind == "closeup":
+        objects, backdrop, views = _closeup(rng, p)
+        target = [0.0, 0.0, 0.0]  # the lights aim at the subject, the cameras a little off it
     else:
         n = int(rng.integers(p.scene.objects_room_scene.lo, p.scene.objects_room_scene.hi + 1))
         for _ in range(n):

@@ -1,5 +1,5 @@
 """The render contract under the base model's scene variety: stretched shapes (their normals),
-gradient and gabor patterns, class materials and the procedural sky (Blender renders at 48-64 px:
+gradient and gabor patterns, class materials, the procedural sky and the close-up's wall (Blender renders at 48-64 px:
 about 5 s in all, so not marked slow)."""
 
 from __future__ import annotations
@@ -12,8 +12,9 @@ import pytest
 from fixtures.render_scenes import controlled_spec, euler_xyz, interior, point_light, principled, sphere, tiny_params
 from pilight.data import layout
 from pilight.data.exr import read_exr
+from pilight.params import RenderParams
 from pilight.render.material_classes import pattern_material
-from pilight.render.spec import SKY_IRRADIANCE, SKY_MODEL
+from pilight.render.spec import SKY_IRRADIANCE, SKY_MODEL, scene_spec
 
 
 def _maps(root, light=None):
@@ -183,3 +184,33 @@ def test_the_ball_sees_the_sky_with_its_sun_where_the_point_light_is(variety_sce
     normals = _ball_normals(sky.shape)
     shade = (normals @ sun_cam < -0.3) & (np.linalg.norm(normals, axis=-1) > 0)
     assert sky[shade].mean() > 2 * point[shade].mean(), "the sky's dome lights the side the sun does not"
+
+
+def test_closeup_wall_stands_where_the_spec_puts_it_and_faces_the_camera(tmp_path, bpy_render):
+    """A drawn close-up view and wall around a gray sphere: every pixel whose ray misses the sphere sees
+    the wall (on the mask, its albedo, its normal: the spec's rotation in camera space), none a floor."""
+    p = RenderParams(scene={"room_fraction": 0.0, "closeup_fraction": 1.0})
+    drawn = next(s for s in (scene_spec(p, 42, "train", i) for i in range(50)) if s["backdrop"] is not None)
+    wall = drawn["backdrop"] | {"material": principled((0.3, 0.5, 0.7), 0.6, 0.0)}
+    size = drawn["objects"][0]["scale"]
+    view = drawn["views"][0]
+    spec = controlled_spec(
+        [sphere(principled((0.6, 0.6, 0.6), 0.5, 0.0), scale=size)],
+        [point_light(np.asarray(view["location"]) + [0.0, 0.0, 1.0])],
+        view=view,
+    ) | {"kind": "closeup", "backdrop": wall}
+    _, handles = bpy_render(spec, tmp_path, tiny_params(resolution=48), verify=False)
+    maps = _maps(tmp_path)
+    eye, rays, world_from_camera = _camera_rays(handles)
+    d = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+    b = d @ eye
+    misses = b**2 - (eye @ eye - (1.02 * size) ** 2) < 0  # the ray passes the sphere by 2% of its radius
+    misses &= interior(np.repeat(misses[..., None].astype(np.float32), 1, -1))
+    assert misses.sum() > 200, "the drawn framing leaves wall around the subject"
+    normal = euler_xyz(wall["rotation_deg"]) @ np.array([0.0, 0.0, 1.0]) @ world_from_camera
+    error = _angle_deg(maps["normal"][misses], np.broadcast_to(normal, (int(misses.sum()), 3)))
+    assert error.max() < 1.0, error.max()
+    assert (maps["mask"][misses] > 0.5).all()
+    np.testing.assert_allclose(
+        maps["albedo"][misses], np.broadcast_to((0.3, 0.5, 0.7), (int(misses.sum()), 3)), atol=0.02
+    )

@@ -105,7 +105,7 @@ def test_bad_variety_params_name_key_value_and_rule(tmp_path, render, needle):
 
 def test_committed_params_document_every_variety_key():
     raw = yaml.safe_load((ROOT / "params.yaml").read_text())["render"]
-    for key in ("stretch", "material_model", "material_classes"):
+    for key in ("stretch", "material_model", "material_classes", "closeup_fraction"):
         assert key in raw["scene"], key
     for key in ("sky_probability", "sky_air", "sky_aerosol", "sky_sun_intensity"):
         assert key in raw["light"], key
@@ -225,3 +225,51 @@ def test_sky_lights_take_the_point_lights_place_direction_and_irradiance():
         assert 0.8 <= sky["air"] <= 1.5 and 0.5 <= sky["aerosol"] <= 4.0 and 0.7 <= sky["sun_intensity"] <= 1.0
     azimuths = [math.degrees(math.atan2(k["sun_direction"][1], k["sun_direction"][0])) % 360 for k in skies]
     assert np.histogram(azimuths, bins=4, range=(0, 360))[0].min() > len(skies) / 10, "suns all around"
+
+
+def test_closeup_share_is_cut_from_the_object_scenes_and_leaves_the_rooms_as_they_were():
+    before = RenderParams(scene={"room_fraction": 0.25})
+    after = RenderParams(scene={"room_fraction": 0.25, "closeup_fraction": 0.5})
+    kinds = [
+        (scene_spec(before, 42, "train", i)["kind"], scene_spec(after, 42, "train", i)["kind"]) for i in range(200)
+    ]
+    assert all((b == "room") == (a == "room") for b, a in kinds), "one draw picks the kind: rooms stay rooms"
+    assert {b for b, a in kinds if a == "closeup"} == {"object"}
+    assert 0.4 < sum(a == "closeup" for _, a in kinds) / len(kinds) < 0.6
+
+
+def _closeups(n: int = 80) -> list[dict]:
+    p = RenderParams(scene={"room_fraction": 0.0, "closeup_fraction": 1.0}, views_per_scene=3)
+    return [scene_spec(p, 42, "train", i) for i in range(n)]
+
+
+def test_closeups_frame_their_subject_like_a_portrait_with_no_floor():
+    specs = _closeups()
+    assert {s["kind"] for s in specs} == {"closeup"}
+    walls = [s for s in specs if s["backdrop"] is not None]
+    assert {s["backdrop"]["type"] for s in walls} == {"wall"}, "a wall or nothing behind the subject, never a floor"
+    assert 0.45 < len(walls) / len(specs) < 0.75
+    for s in specs:
+        subject = s["objects"][0]
+        assert subject["location"] == [0.0, 0.0, 0.0]
+        for v in s["views"]:
+            eye, target = np.asarray(v["location"]), np.asarray(v["target"])
+            distance = np.linalg.norm(eye - target)
+            # the subject's radius over the picture's half-height (Blender's 36 mm sensor, square renders)
+            fill = subject["scale"] / (distance * 18.0 / v["lens_mm"])
+            assert 0.49 < fill < 0.91, (s["id"], fill)
+            elevation = math.degrees(math.asin((eye - target)[2] / distance))
+            assert abs(elevation) <= 10.0 + 1e-6, (s["id"], elevation)
+            assert np.linalg.norm(target[:2]) <= 0.3 * math.sqrt(2) * subject["scale"] + 1e-4
+            if s["backdrop"] is not None:  # the wall is behind the subject and faces the camera's side
+                wall = s["backdrop"]
+                normal = euler_xyz(wall["rotation_deg"]) @ np.array([0.0, 0.0, 1.0])
+                to_eye = (eye - target) / distance
+                assert normal @ to_eye > math.cos(math.radians(36.0)), (s["id"], normal, to_eye)
+                assert np.asarray(wall["location"]) @ to_eye < -subject["scale"], "behind the subject"
+
+
+def test_bad_closeup_share_names_both_keys(tmp_path):
+    with pytest.raises(ParamsError) as err:
+        _load(tmp_path, {"scene": {"room_fraction": 0.6, "closeup_fraction": 0.5}})
+    assert "room_fraction (0.6) + closeup_fraction (0.5) must not exceed 1" in str(err.value)
