@@ -52,10 +52,27 @@ def _wait(predicate, what: str, timeout: float = 60.0):
     raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
 
 
-def _shown_relit(driver) -> tuple[str, np.ndarray]:
+def _relit_src(driver) -> str:
     from selenium.webdriver.common.by import By
 
-    src = driver.find_element(By.CSS_SELECTOR, "#relit img").get_attribute("src")
+    return driver.find_element(By.CSS_SELECTOR, "#relit img").get_attribute("src")
+
+
+def _settled(read, seconds: float = 1.0, timeout: float = 60.0):
+    """``read()`` once it has stayed the same for ``seconds``."""
+    end, last, since = time.monotonic() + timeout, read(), time.monotonic()
+    while time.monotonic() < end:
+        time.sleep(0.1)
+        now = read()
+        if now != last:
+            last, since = now, time.monotonic()
+        elif time.monotonic() - since >= seconds:
+            return last
+    raise AssertionError(f"still changing after {timeout:.0f} s: {last!r}")
+
+
+def _shown_relit(driver) -> tuple[str, np.ndarray]:
+    src = _relit_src(driver)
     with urllib.request.urlopen(src, timeout=30) as r:
         picture = np.asarray(Image.open(io.BytesIO(r.read())).convert("RGB"), np.float32) / 255
     return src, picture**2.2  # roughly linear, for the luminance halves
@@ -82,7 +99,7 @@ def test_dragging_the_light_from_left_to_right_relights_the_page(browser, tmp_pa
 
         def drag(to_x: float, steps: int = 6):
             """Press on the left of the ball, move in steps to ``to_x`` (fraction of its half-width), release."""
-            before = _status(browser)
+            before, src_before = _status(browser), _relit_src(browser)
             chain = ActionChains(browser).move_to_element_with_offset(ball, int(-0.42 * w), 0).click_and_hold()
             for i in range(1, steps + 1):
                 chain = chain.move_to_element_with_offset(ball, int((-0.42 + (to_x + 0.42) * i / steps) * w), 0)
@@ -91,8 +108,10 @@ def test_dragging_the_light_from_left_to_right_relights_the_page(browser, tmp_pa
                 lambda: _status(browser) != before and "Relit in" in _status(browser),
                 f"the relit image (status: {before!r})",
             )
-            time.sleep(1.0)  # the last position's relight (always_last) lands after the first ones
-            return _status(browser)
+            # The status and the picture arrive as separate updates, and the last position's relight
+            # (always_last) lands after the first ones: wait for a new picture, then for both to settle.
+            _wait(lambda: _relit_src(browser) != src_before, "a new relit picture")
+            return _settled(lambda: (_status(browser), _relit_src(browser)))[0]
 
         said_left = drag(-0.42, steps=1)
         src_left, left = _shown_relit(browser)
