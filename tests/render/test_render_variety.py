@@ -1,6 +1,6 @@
 """The render contract under the base model's scene variety: stretched shapes (their normals),
 gradient and gabor patterns, class materials, the procedural sky and the close-up wall (Blender renders
-at 48-64 px: about 6 s in all, so not marked slow)."""
+at 48-64 px: a few seconds in all, so not marked slow)."""
 
 from __future__ import annotations
 
