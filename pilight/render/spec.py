@@ -184,7 +184,7 @@ def _closeup(rng, p: RenderParams) -> tuple[list[dict], dict | None, list[dict]]
     size = float(rng.uniform(0.6, 1.0))
     objects = [_object(rng, p, [0.0, 0.0, 0.0], size)]
     side = rng.uniform(0, 2 * math.pi)  # the azimuth the cameras look from
-    toward = np.array([math.cos(side), math.sin(side), 0.0])  # from the subject toward the cameras
+    toward = _direction(side, 0.0)  # from the subject toward the cameras, level
     across = np.array([-toward[1], toward[0], 0.0])
     if rng.uniform() < 0.5:
         second = float(rng.uniform(0.3, 0.6))
@@ -210,7 +210,7 @@ def _closeup(rng, p: RenderParams) -> tuple[list[dict], dict | None, list[dict]]
         el = math.radians(rng.uniform(-10.0, 10.0))
         look = rng.uniform(-0.3, 0.3, 2) * size  # off centre, across and up
         target = look[0] * across + [0.0, 0.0, look[1]]
-        eye = target + distance * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        eye = target + distance * _direction(az, el)
         views.append(_look_view(eye, target, lens_mm=round(lens, 3)))
     return objects, backdrop, views
 
