@@ -40,6 +40,17 @@ def _training(stage: str, p, log: dict) -> str:
     )
 
 
+def _scene_mix(sc, light) -> str:
+    """The kinds of scene it saw: what a photo must resemble for its stage 1 to read it (a portrait read
+    as a floor before a wall when no close-ups were drawn; docs/base-model.md)."""
+    objects = 1.0 - sc.room_fraction - sc.closeup_fraction
+    return (
+        f"- Scenes: {sc.room_fraction:.0%} rooms, {sc.closeup_fraction:.0%} close-ups (one subject at eye level, "
+        f"a wall or nothing behind it), {objects:.0%} objects on a ground plane; Blender's sky in "
+        f"{light.sky_probability:.0%} of scenes; materials: {sc.material_model}."
+    )
+
+
 def model_card(
     base, render, intrinsics, relight, *, metrics: dict[str, dict], training: dict[str, dict], weights_bytes: int
 ) -> str:
@@ -64,6 +75,7 @@ def model_card(
         f"- {render.scenes.train} training scenes, {render.scenes.val} validation, {render.scenes.test} test; "
         f"{render.views_per_scene} views x {render.lights_per_view} lights each, {render.resolution}^2 px, "
         f"base.seed {base.seed} (the embedded default's scenes come from another seed).",
+        _scene_mix(sc, light),
         f"- Shapes: {', '.join(sc.shapes)}; textures: {', '.join(sc.textures)}.",
         f"- HDRIs: {', '.join(hdri.names)}; held out for its test split: {', '.join(held) or 'none'}. "
         f"Point light alone or with an HDRI (p = {light.hdri_probability}).",

@@ -1,0 +1,33 @@
+"""The model card says what the base saw: the scene mix (a close-up share decides whether stage 1 reads a
+portrait as a floor; docs/base-model.md), the data's sizes and its figures, all from the params and metrics
+the export stage passes in (pilight/eval/model_card.py)."""
+
+from __future__ import annotations
+
+from fixtures.tiny_models import REPO
+from pilight.eval.model_card import model_card
+from pilight.params import load_section
+
+
+def _card(path):
+    sections = {
+        name: load_section(name, path, check_paths=False) for name in ("base", "render", "intrinsics", "relight")
+    }
+    metrics = {"headline": {"normal_deg": 23.5}, "headline_heldout": {"normal_deg": 25.0}}
+    return model_card(**sections, metrics=metrics, training={}, weights_bytes=27 * 2**20)
+
+
+def test_the_card_states_the_base_scene_mix_and_its_figures():
+    card = _card(REPO / "base" / "params.yaml")
+    render = load_section("render", REPO / "base" / "params.yaml", check_paths=False)
+    sc = render.scene
+    objects = 1 - sc.room_fraction - sc.closeup_fraction
+    assert f"{sc.room_fraction:.0%} rooms, {sc.closeup_fraction:.0%} close-ups" in card
+    assert f"{objects:.0%} objects on a ground plane" in card
+    assert f"{render.scenes.train} training scenes" in card
+    assert "| normal_deg | 23.500 | 25.000 |" in card
+
+
+def test_the_default_params_card_has_no_close_ups():
+    card = _card(REPO / "params.yaml")
+    assert "0% close-ups" in card and "50% rooms" in card
