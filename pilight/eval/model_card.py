@@ -33,9 +33,11 @@ def _training(stage: str, p, log: dict) -> str:
     seconds = log.get("seconds")
     took = f"{seconds / 3600:.2f} h" if isinstance(seconds, int | float) else "?"
     extra = f", objective {p.objective}, layout {p.layout}" if stage == "intrinsics" else ""
+    precision = log.get("mixed_precision", m.get("mixed_precision", "?"))
+    precision = {"no": "fp32"}.get(precision, precision)  # accelerate calls full precision "no"
     return (
         f"- **{stage}**: {log.get('steps', p.train.steps)} steps of {p.train.batch_size}, lr {p.train.lr} "
-        f"({p.train.lr_schedule}), {log.get('mixed_precision', m.get('mixed_precision', '?'))} precision{extra}; "
+        f"({p.train.lr_schedule}), {precision} precision{extra}; "
         f"{took} on {where}"
     )
 

@@ -31,3 +31,13 @@ def test_the_card_states_the_base_scene_mix_and_its_figures():
 def test_the_default_params_card_has_no_close_ups():
     card = _card(REPO / "params.yaml")
     assert "0% close-ups" in card and "50% rooms" in card
+
+
+def test_a_full_precision_stage_reads_fp32_not_accelerates_no():
+    sections = {
+        name: load_section(name, REPO / "base" / "params.yaml", check_paths=False)
+        for name in ("base", "render", "intrinsics", "relight")
+    }
+    training = {"relight": {"steps": 2000, "mixed_precision": "no", "seconds": 733.0}}
+    card = model_card(**sections, metrics={}, training=training, weights_bytes=1)
+    assert "fp32 precision" in card and "no precision" not in card
