@@ -107,11 +107,6 @@ def test_the_processing_size_chosen_in_the_page_goes_into_the_command(client, as
     assert command.endswith("--resolution 256 -o relit"), command
 
 
-@pytest.mark.xfail(
-    strict=True,  # an unexpected pass fails CI: whoever makes it pass removes this marker (and the CLI's)
-    reason="issue #33, open: the shipped base reads the portrait as a room (tests/cli/test_light_flip.py); "
-    "the app relights it as the CLI does, so its asymmetry moves with the light but does not flip",
-)
 def test_the_astronaut_flips_between_light_from_the_left_and_from_the_right(client, astronaut_png):
     _upload(client, astronaut_png)
     a_left, a_right = (halves_asymmetry(_relit(client, az)[0] ** 2.2) for az in (-90, 90))

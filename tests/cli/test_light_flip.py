@@ -15,13 +15,6 @@ MODELS = REPO / "models"
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,  # an unexpected pass fails CI too: whoever makes it pass removes this marker
-    reason="issue #33, open: with pilight-base (ea6a7b9) and the default fine-tuned from it (bd934e0) the relit "
-    "asymmetry is -0.32 / -0.24 and -0.20 / -0.11 under left / right light (moves, does not flip: stage 1 reads "
-    "the portrait as a room, normals n_y +0.81 in the bottom half as a floor's); detail and exposure pass since "
-    "exposure: photo (detail 1.41-1.45, exposure 1.00); benchmarks/photo_relight.py prints them",
-)
 def test_left_versus_right_light_flips_the_relit_asymmetry(astronaut):
     from pilight.base_model import default_models
 
