@@ -10,6 +10,7 @@ import re
 import pytest
 from pydantic import ValidationError
 
+from fixtures.tiny_models import REPO
 from pilight.base_model import BASE_DIR, mismatches
 from pilight.params import (
     FreeRelitForm,
@@ -22,6 +23,8 @@ from pilight.params import (
 from pilight.profiles import compose
 
 SHIPPED = BASE_DIR / "relight" / "config.json"
+# stage 2's saved params of the base of ea6a7b9, the last one saved with the flat keys (physics_first, ...)
+FLAT_SAVED = REPO / "fixtures" / "flat_relight_params.json"
 FLAT_PHYSICS_FIRST = {
     "physics_first": True,
     "relit_target": "gain",
@@ -66,10 +69,18 @@ def test_the_flat_keys_defaults_mean_what_they_meant(flat, form):
     assert RelightParams.model_validate({"form": form_from_flat(flat)}).form == form
 
 
-def test_a_saved_model_with_flat_keys_migrates_and_fits_the_default_params():
-    """The shipped base was saved with the flat keys: it reads as the form the embedded default asks for,
-    so `unet.init: base` finds no mismatch, and migrating twice changes nothing."""
+def test_the_shipped_base_is_saved_with_the_form_and_fits_the_default_params():
     saved = json.loads(SHIPPED.read_text())["params"]
+    wanted = load_section("relight", "params.yaml", check_paths=False)
+    assert not any(k in saved for k in FLAT_PHYSICS_FIRST)
+    assert migrate_saved_relight(saved)["form"] == wanted.form.model_dump(mode="json")
+    assert mismatches("relight", wanted.model_dump(mode="json"), saved) == []
+
+
+def test_a_saved_model_with_flat_keys_migrates_and_fits_the_default_params():
+    """A base saved with the flat keys (ea6a7b9's) reads as the form the embedded default asks for,
+    so `unet.init: base` finds no mismatch, and migrating twice changes nothing."""
+    saved = json.loads(FLAT_SAVED.read_text())
     assert saved.get("physics_first") is True  # the test is about a flat config
     migrated = migrate_saved_relight(saved)
     assert not any(k in migrated for k in FLAT_PHYSICS_FIRST) and migrate_saved_relight(migrated) == migrated
