@@ -9,12 +9,12 @@ from pilight.eval.model_card import model_card
 from pilight.params import load_section
 
 
-def _card(path):
+def _card(path, training=None):
     sections = {
         name: load_section(name, path, check_paths=False) for name in ("base", "render", "intrinsics", "relight")
     }
     metrics = {"headline": {"normal_deg": 23.5}, "headline_heldout": {"normal_deg": 25.0}}
-    return model_card(**sections, metrics=metrics, training={}, weights_bytes=27 * 2**20)
+    return model_card(**sections, metrics=metrics, training=training or {}, weights_bytes=27 * 2**20)
 
 
 def test_the_card_states_the_base_scene_mix_and_its_figures():
@@ -34,10 +34,6 @@ def test_the_default_params_card_has_no_close_ups():
 
 
 def test_a_full_precision_stage_reads_fp32_not_accelerates_no():
-    sections = {
-        name: load_section(name, REPO / "base" / "params.yaml", check_paths=False)
-        for name in ("base", "render", "intrinsics", "relight")
-    }
     training = {"relight": {"steps": 2000, "mixed_precision": "no", "seconds": 733.0}}
-    card = model_card(**sections, metrics={}, training=training, weights_bytes=1)
+    card = _card(REPO / "base" / "params.yaml", training)
     assert "fp32 precision" in card and "no precision" not in card
