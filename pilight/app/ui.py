@@ -41,6 +41,14 @@ PHOTO_TYPES = [".png", ".jpg", ".jpeg", ".tif", ".tiff", ".webp", ".bmp", ".exr"
 # `select` event reports clicks only, and did not fire for Chromium's pointer here.)
 DRAG_JS = """
 () => {
+  /* A pointer at (cx, cy) -> (x, y) as fractions 0..1 of the picture shown in the element's rect r. Gradio may
+     letterbox the picture (object-fit); while a new picture loads (the picker is redrawn after every
+     relighting) its natural size reads 0, and then the element's own size is the picture's. */
+  window.pilightPickerFraction = (r, naturalWidth, naturalHeight, cx, cy) => {
+    const nw = naturalWidth || r.width, nh = naturalHeight || r.height;
+    const k = Math.min(r.width / nw, r.height / nh), w = nw * k, h = nh * k;
+    return [(cx - r.left - (r.width - w) / 2) / w, (cy - r.top - (r.height - h) / 2) / h];
+  };
   const attach = () => {
     const host = document.querySelector('#ball-picker');
     const box = document.querySelector('#ball-drag textarea, #ball-drag input');
@@ -49,11 +57,8 @@ DRAG_JS = """
     const send = (e) => {
       const img = host.querySelector('img');
       if (!img) return;
-      const r = img.getBoundingClientRect();
-      /* the picture inside the element: Gradio may letterbox it (object-fit) */
-      const k = Math.min(r.width / (img.naturalWidth || 1), r.height / (img.naturalHeight || 1));
-      const w = (img.naturalWidth || r.width) * k, h = (img.naturalHeight || r.height) * k;
-      const x = (e.clientX - r.left - (r.width - w) / 2) / w, y = (e.clientY - r.top - (r.height - h) / 2) / h;
+      const [x, y] = window.pilightPickerFraction(img.getBoundingClientRect(), img.naturalWidth, img.naturalHeight,
+                                                  e.clientX, e.clientY);
       if (x < -0.1 || x > 1.1 || y < -0.1 || y > 1.1) return;
       box.value = x.toFixed(4) + ',' + y.toFixed(4) + ',' + (last++);
       box.dispatchEvent(new Event('input', {bubbles: true}));

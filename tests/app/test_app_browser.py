@@ -127,5 +127,37 @@ def test_dragging_the_light_from_left_to_right_relights_the_page(browser, tmp_pa
     assert halves_asymmetry(left) < -0.1 < 0.1 < halves_asymmetry(right), (
         halves_asymmetry(left),
         halves_asymmetry(right),
+        said_left,
+        said_right,
     )
     assert (tmp_path / "app.png").stat().st_size > 10_000
+
+
+def test_a_press_while_the_picker_redraws_lands_where_the_pointer_is(browser, tmp_path):
+    """The picker's picture is replaced after every relighting; while the new one loads its natural size
+    reads 0. A press then must still land under the pointer, not at the ball's centre (a CI run once relit
+    the sphere from the front after a press on the ball's left: the letterbox arithmetic divided by 0)."""
+    with served_app(shipped_pipeline()) as url:
+        browser.get(url)
+        _wait(
+            lambda: browser.execute_script("return typeof window.pilightPickerFraction === 'function'"),
+            "the page's drag script",
+        )
+        rect = {"left": 400, "top": 100, "width": 256, "height": 256}
+
+        def at(natural_w, natural_h, cx, cy, r=rect):
+            return browser.execute_script(
+                "return window.pilightPickerFraction(arguments[0], arguments[1], arguments[2], arguments[3], arguments[4])",
+                r,
+                natural_w,
+                natural_h,
+                cx,
+                cy,
+            )
+
+        # on the left of the ball, half-way down: loaded, and while loading
+        assert at(256, 256, 421, 228) == pytest.approx([21 / 256, 0.5])
+        assert at(0, 0, 421, 228) == pytest.approx([21 / 256, 0.5])
+        # a square picture letterboxed in a wide element: its left edge is 22 px in
+        wide = {**rect, "width": 300}
+        assert at(256, 256, 422, 100, wide) == pytest.approx([0.0, 0.0])
