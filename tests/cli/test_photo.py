@@ -86,6 +86,25 @@ def test_exif_orientation_is_honoured(tmp_path, astronaut):
     np.testing.assert_allclose(photo.rgb, srgb_to_linear(shown / 255.0), atol=1e-6)
 
 
+def test_probe_reads_a_png_header_without_decoding_its_pixels(tmp_path, astronaut, monkeypatch):
+    """Pillow's PNG reader decodes the whole image to look for EXIF after the pixels; the probe must not
+    (a 60000^2 header once allocated its full buffer in CI before the memory guard refused it)."""
+    from PIL import ImageFile
+
+    plain = tmp_path / "plain.png"
+    Image.fromarray(astronaut[:64, :96]).save(plain)
+    turned = tmp_path / "turned.png"
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    Image.fromarray(astronaut[:64, :96]).save(turned, exif=exif.tobytes())  # Pillow writes eXIf before IDAT
+    decoded = []
+    real_load = ImageFile.ImageFile.load
+    monkeypatch.setattr(ImageFile.ImageFile, "load", lambda self: decoded.append(self.filename) or real_load(self))
+    assert probe(plain) == (64, 96)
+    assert probe(turned) == (96, 64)  # its orientation is still read, from the header
+    assert decoded == []
+
+
 def test_alpha_becomes_the_mask_and_gray_becomes_rgb(tmp_path):
     rgba = np.zeros((8, 10, 4), np.uint8)
     rgba[..., :3] = 200
