@@ -380,7 +380,8 @@ def train(
                     live.next_step()
                 win_t, win_n, win_loss, win_scalars = now, 0, torch.zeros((), device=acc.device), {}
 
-            if live_dir is not None and step % cfg.image_every == 0:
+            # The last step previews too: a run shorter than image_every still leaves its pictures (dvc.yaml's out).
+            if live_dir is not None and (step % cfg.image_every == 0 or step == cfg.steps):
                 # The preview samples the weights: NaN there is the training's failure, said as such, not a
                 # sampler traceback. Every process checks (sharded: a collective), so none waits alone.
                 _check_finite_before_saving(acc, win_loss, win_n, params, ema, step, sharded)

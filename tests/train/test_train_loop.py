@@ -299,6 +299,14 @@ def test_dvclive_outputs(tmp_path: Path, monkeypatch):
     assert set(out) == {"steps", "seconds", "samples_per_second", "final_loss", "resumed_from"}
 
 
+def test_a_run_shorter_than_image_every_still_leaves_its_preview(tmp_path: Path, monkeypatch):
+    """dvc.yaml declares each training stage's plots/images an output: `-S intrinsics.train.steps=20` with
+    image_every 100 once failed the stage with "output ... does not exist". The last step previews too."""
+    monkeypatch.chdir(tmp_path)
+    train(ToyTask(), cfg(steps=3, image_every=100), tmp_path / "ckpt", tmp_path / "live", progress=False)
+    assert (tmp_path / "live" / "plots" / "images" / "grid.png").is_file()
+
+
 def test_invalid_config():
     with pytest.raises(ValueError):
         TrainParams(steps=10, grad_accum=0)
