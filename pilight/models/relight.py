@@ -21,6 +21,7 @@ from pilight.data.schema import DataError
 from pilight.diffusion.codec import cell_smooth
 from pilight.models.stack import DiffusionStack, build_stack
 from pilight.params import DOMAINS, RelightParams, SamplingParams
+from pilight.physics.precision import in_full_precision
 from pilight.relight import physics_first as pf
 from pilight.relight.branches import (
     branch_layout,
@@ -96,6 +97,7 @@ class RelightModel:
         """Pixels per side of one physics-first output value: the codec cell with form.resolution cell, else 1."""
         return self.stack.codec.factor if self.form.resolution == "cell" else 1
 
+    @in_full_precision  # data, not the network: light fits and anchors in fp32 under bf16 (physics.precision)
     def _conditions(
         self, batch: dict, intr: dict[str, torch.Tensor], dev, intensity: str | None = None
     ) -> tuple[dict, pf.Anchors | None, dict[str, torch.Tensor]]:

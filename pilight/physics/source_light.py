@@ -19,6 +19,7 @@ from __future__ import annotations
 import torch
 
 from .envmap import BALL_ALBEDO, ball_normals
+from .precision import in_full_precision
 
 MIN_PIXELS = 32  # fewer usable pixels than this cannot pin nine coefficients down
 RIDGE = 1e-6  # Tikhonov weight, relative to the normal matrix's mean diagonal (front-facing normals
@@ -107,6 +108,7 @@ def estimate_source_ball(
     return sh_ball(fit_diffuse_sh(image, albedo, normal, mask, metallic), size)
 
 
+@in_full_precision
 def estimate_source_balls(
     image: torch.Tensor,
     albedo: torch.Tensor,

@@ -26,6 +26,7 @@ import math
 import torch
 
 from .envmap import BALL_ALBEDO, ball_normals
+from .precision import in_full_precision
 
 F0_DIELECTRIC = 0.04
 N_DIRECTIONS = 2048
@@ -41,6 +42,7 @@ def sphere_directions(n: int = N_DIRECTIONS) -> torch.Tensor:
     return torch.stack([r * torch.cos(phi), y, r * torch.sin(phi)], 1).float()
 
 
+@in_full_precision
 def fit_directional(lambertian_ball: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(l (B, 3) unit, I (B, 3), a (B, 3)): the distant light plus constant environment whose
     Lambertian ball is closest (least squares over the disk) to ``lambertian_ball`` (B x 3 x h x w)."""
@@ -72,6 +74,7 @@ def fit_directional(lambertian_ball: torch.Tensor) -> tuple[torch.Tensor, torch.
     return l, intensity, ambient
 
 
+@in_full_precision
 def ggx_specular(
     normal: torch.Tensor,
     roughness: torch.Tensor,

@@ -83,3 +83,26 @@ def test_metals_reflect_their_base_colour_and_dielectrics_do_not():
     lit = s[0, 0] > 0
     assert lit.any() and bool((s[0, 0] >= s[0, 1]).all() and (s[0, 1] >= s[0, 2]).all())
     assert float(s[0, :, 0, 0].abs().sum()) == 0.0  # off the sphere (normal 0): nothing
+
+
+@pytest.mark.parametrize("direction", [(0.3, 0.5, 0.8), (-0.7, 0.2, 0.4), (0.5, -0.2, 0.1)])
+def test_the_anchor_is_computed_in_fp32_under_a_bf16_loop(direction):
+    """Training and inference run under bf16 autocast; the light fit's closed form subtracts nearly equal
+    sums, which bf16 matrix products turn to noise (base stage 2 went NaN at step 626 of a bf16 run).
+    The fit and the GGX anchor give the fp32 result, finite, whatever autocast the caller has on."""
+    ball = ball_from_direction(_unit(direction), torch.tensor([[2.0, 1.0, 0.5]]), torch.tensor([[0.1, 0.05, 0.2]]), 32)
+    g = torch.Generator().manual_seed(0)
+    normal = torch.nn.functional.normalize(torch.randn(1, 3, 16, 16, generator=g), dim=1)
+    normal[:, 2] = normal[:, 2].abs()
+    roughness, albedo = torch.rand(1, 1, 16, 16, generator=g), torch.rand(1, 3, 16, 16, generator=g)
+    metallic = (torch.rand(1, 1, 16, 16, generator=g) > 0.5).float()
+    exact_fit = fit_directional(ball)
+    exact = specular_from_ball(ball, normal, roughness, albedo, metallic)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        fit = fit_directional(ball)
+        s = specular_from_ball(ball, normal, roughness, albedo, metallic)
+    for a, b in zip(fit, exact_fit):
+        assert a.dtype == torch.float32
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert s.dtype == torch.float32 and torch.isfinite(s).all()
+    torch.testing.assert_close(s, exact, rtol=0, atol=0)
