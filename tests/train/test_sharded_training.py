@@ -54,9 +54,9 @@ class Recording(ShardedToyTask):
         return {{}}
 
 
-# (run, steps, EMA decay, previews the main process draws: every 4 steps, in the EMA runs)
+# (run, steps, EMA decay, previews the main process draws: every 4 steps and at the last, in the EMA runs)
 for name, steps, ema, previews in (("fsdp", 12, 0.0, 0), ("resumed", 7, 0.0, 0), ("resumed", 12, 0.0, 0),
-                                   ("ema", 12, 0.9, 3), ("ema_resumed", 7, 0.9, 1), ("ema_resumed", 12, 0.9, 2)):
+                                   ("ema", 12, 0.9, 3), ("ema_resumed", 7, 0.9, 2), ("ema_resumed", 12, 0.9, 2)):
     task = Recording(rank=rank, world=2, model_seed=123 + rank)  # another init per rank: rank 0's is broadcast
     live = f"{{out}}/live-{{name}}" if ema else None
     train(task, ddp_cfg(steps).model_copy(update=dict(ema_decay=ema, image_every=4)), f"{{out}}/{{name}}", live,
