@@ -91,4 +91,7 @@ def test_the_downloaded_command_reproduces_the_page(pipe, astronaut_png, tmp_pat
     made = list((folder / "relit").rglob("relit.png"))
     assert len(made) == 1
     diff = np.abs(np.asarray(Image.open(made[0])).astype(int) - shown.astype(int))
-    assert diff.max() <= (0 if not mixed else 1), diff.max()  # the ball file: float32 EXR, resampled 1:1
+    # The command decomposes the photo again in a fresh process: a last-bit difference of a float sum can
+    # flip an 8-bit rounding (CI once saw one level, single light; the mixed light's ball is a float32 EXR).
+    # Reproduced means: no pixel off by more than one level, and almost none off at all.
+    assert diff.max() <= 1 and (diff > 0).mean() < 1e-3, (diff.max(), (diff > 0).mean())
