@@ -613,7 +613,12 @@ class ScheduleParams(_Section):
 
 
 class TrainParams(_Section):
-    steps: int = Field(600, ge=1, le=MAX_STEPS)
+    steps: int = Field(
+        600,
+        ge=0,
+        le=MAX_STEPS,
+        description="optimizer steps; 0 = the initial weights (e.g. unet.init: base) as the model",
+    )
     batch_size: int = Field(2, ge=1, le=MAX_BATCH, description="samples per step; each carries every domain")
     lr: float = Field(2e-4, gt=0, le=1.0)
     weight_decay: float = Field(

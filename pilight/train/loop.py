@@ -223,6 +223,54 @@ def _check_finite_before_saving(
         )
 
 
+def _preview(acc: Accelerator, task: Task, batch: Any, live: Any, model: Any, module: Any, sharded: bool) -> None:
+    """Log the task's preview grids of ``batch`` (main process); sharded, every process must call it."""
+    if sharded:  # a collective: the main process receives the whole weights for its previews
+        sharding.whole_weights(model, module, everywhere=False)
+    if live is not None:
+        # fork_rng: image sampling on the main process must not shift any training RNG stream.
+        devices = [acc.device] if acc.device.type == "cuda" else []
+        with torch.no_grad(), acc.autocast(), torch.random.fork_rng(devices=devices):
+            for name, grid in task.images(send_to_device(batch, acc.device)).items():
+                live.log_image(f"{name}.png", numpy.asarray(grid))
+        model.train()
+    if sharded:
+        sharding.release(module)
+
+
+def _score_initial_weights(
+    acc: Accelerator,
+    task: Task,
+    generator: torch.Generator,
+    model: Any,
+    module: Any,
+    live: Any,
+    sharded: bool,
+    checkpoint_dir: Path,
+) -> float:
+    """``train.steps: 0``: the loss of the untouched weights on the first batch (no gradient), logged at
+    step 0 with the previews, so a run that trains nothing still leaves the metrics and pictures the
+    stage declares (and says how good its starting point is). Returns that loss."""
+    batch = next(iter(task.batches(0)), None)
+    if not _all_have_batch(acc, batch is not None):
+        raise RuntimeError("task.batches(0) yielded no batches; nothing to score the initial weights on")
+    with torch.no_grad(), acc.autocast():
+        loss, scalars = task.loss(send_to_device(batch, acc.device), generator, model)
+    value = acc.reduce(loss.detach().float(), "mean").item()
+    if not math.isfinite(value):
+        raise ckpt.NonFiniteError(
+            f"non-finite loss {value} of the initial weights (train.steps: 0); {checkpoint_dir} is empty"
+        )
+    if live is not None:
+        live.step = 0
+        live.log_metric("loss", value)
+        for k, v in scalars.items():
+            live.log_metric(k, float(v))
+        live.next_step()
+    _preview(acc, task, batch, live, model, module, sharded)
+    return value
+
+
 def _truncate_history(metrics_dir: Path, step: int) -> None:
     """Drop dvclive rows logged after the checkpoint we resume from (they will be logged again)."""
     for tsv in metrics_dir.rglob("*.tsv"):
@@ -321,6 +369,8 @@ def train(
     start, micro = time.perf_counter(), 0
     win_t, win_n, win_loss, win_scalars = start, 0, torch.zeros((), device=acc.device), {}
     model.train()
+    if cfg.steps == 0:  # the initial weights are the model (a shipped base used as is): scored, not trained
+        final_loss = _score_initial_weights(acc, task, generator, model, module, live, sharded, checkpoint_dir)
     while step < cfg.steps:
         seen = 0
         batches = iter(task.batches(epoch))
@@ -385,16 +435,7 @@ def train(
                 # The preview samples the weights: NaN there is the training's failure, said as such, not a
                 # sampler traceback. Every process checks (sharded: a collective), so none waits alone.
                 _check_finite_before_saving(acc, win_loss, win_n, params, ema, step, sharded)
-                if sharded:  # a collective: the main process receives the whole weights for its previews
-                    sharding.whole_weights(model, module, everywhere=False)
-                if live is not None:
-                    # fork_rng: image sampling on the main process must not shift any training RNG stream.
-                    with torch.no_grad(), acc.autocast(), torch.random.fork_rng(devices=[acc.device] if cuda else []):
-                        for name, grid in task.images(send_to_device(batch, acc.device)).items():
-                            live.log_image(f"{name}.png", numpy.asarray(grid))
-                    model.train()
-                if sharded:
-                    sharding.release(module)
+                _preview(acc, task, batch, live, model, module, sharded)
 
             if step % cfg.checkpoint_every == 0 or step == cfg.steps:
                 # checkpoint_every < log_every: the loss check above has not seen these steps yet, and

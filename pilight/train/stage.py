@@ -78,8 +78,11 @@ def run_training_stage(
         atomic.write_json(Path(live) / "machine.json", facts, sort_keys=True)
         if described is not None:
             atomic.write_json(out / "task.json", described, sort_keys=True)
-    print(
-        f"{name}: {stats['steps']} steps in {stats['seconds']:.0f} s "
-        f"({stats['samples_per_second']:.2f} samples/s), final loss {stats['final_loss']:.4f} -> {out}"
-    )
+    if p.train.steps == 0:
+        print(f"{name}: train.steps 0, the initial weights are the model (loss {stats['final_loss']:.4f}) -> {out}")
+    else:
+        print(
+            f"{name}: {stats['steps']} steps in {stats['seconds']:.0f} s "
+            f"({stats['samples_per_second']:.2f} samples/s), final loss {stats['final_loss']:.4f} -> {out}"
+        )
     return 0

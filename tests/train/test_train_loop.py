@@ -307,6 +307,26 @@ def test_a_run_shorter_than_image_every_still_leaves_its_preview(tmp_path: Path,
     assert (tmp_path / "live" / "plots" / "images" / "grid.png").is_file()
 
 
+def test_zero_steps_keeps_the_weights_and_scores_them(tmp_path: Path, monkeypatch):
+    """`train.steps: 0` (the default's stage 1 is the shipped base as is): the weights leave untouched, the
+    loss of the first batch is logged at step 0 beside the preview (dvc.yaml's outputs), nothing is
+    checkpointed, and a run of another length's checkpoints are dropped, not resumed."""
+    monkeypatch.chdir(tmp_path)
+    train(ToyTask(model_seed=5), cfg(steps=4), tmp_path / "ckpt", None, progress=False)  # someone else's checkpoints
+    task = ToyTask()
+    before = weights(task)
+    expected = task.loss(next(iter(task.batches(0))), torch.Generator().manual_seed(0))[0].item()
+    task.calls = 0
+    out = train(task, cfg(steps=0), tmp_path / "ckpt", tmp_path / "live", progress=False, identity={"run": 2})
+    assert_bit_equal(before, weights(task))
+    assert out["steps"] == 0 and out["final_loss"] == pytest.approx(expected, rel=1e-6) and task.calls == 1
+    rows = list(csv.DictReader(open(tmp_path / "live/plots/metrics/loss.tsv"), delimiter="\t"))
+    assert [(int(r["step"]), float(r["loss"])) for r in rows] == [(0, pytest.approx(expected, rel=1e-6))]
+    assert (tmp_path / "live/plots/metrics/t_mean.tsv").is_file()
+    assert (tmp_path / "live/plots/images/grid.png").is_file()
+    assert ckpt.list_checkpoints(tmp_path / "ckpt") == []
+
+
 def test_invalid_config():
     with pytest.raises(ValueError):
         TrainParams(steps=10, grad_accum=0)
@@ -316,6 +336,8 @@ def test_invalid_config():
         TrainParams(steps=10, lr_schedule="linear")
     with pytest.raises(ValueError, match="ema_decay"):
         TrainParams(steps=10, ema_decay=1.0)
+    with pytest.raises(ValueError, match="steps"):
+        TrainParams(steps=-1)
 
 
 class ShardedToyTask:
