@@ -79,7 +79,11 @@ def run_training_stage(
         if described is not None:
             atomic.write_json(out / "task.json", described, sort_keys=True)
     if p.train.steps == 0:
-        print(f"{name}: train.steps 0, the initial weights are the model (loss {stats['final_loss']:.4f}) -> {out}")
+        start = "random weights (unet.init: scratch)" if p.unet.init == "scratch" else f"the {p.unet.init} weights"
+        print(
+            f"{name}: {section}.train.steps is 0, so {start} are the model, untrained (loss {stats['final_loss']:.4f}); "
+            f"set {section}.train.steps to fine-tune -> {out}"
+        )
     else:
         print(
             f"{name}: {stats['steps']} steps in {stats['seconds']:.0f} s "

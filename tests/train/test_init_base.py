@@ -81,7 +81,7 @@ def test_zero_steps_ships_the_base_as_the_stage_model(tmp_path):
     saved = trainable_state(stack.model)
     r = run_stage("train_intrinsics.py", "--params", params, "--shards", shards, *training_outputs(tmp_path))
     assert r.returncode == 0, r.stderr
-    assert "train.steps 0, the initial weights are the model" in r.stdout
+    assert "intrinsics.train.steps is 0, so the base weights are the model, untrained" in r.stdout
     model = load_file(tmp_path / "model" / "model.safetensors")
     for k, v in saved.items():
         torch.testing.assert_close(model[k].float(), v.half().float(), rtol=0, atol=0)
