@@ -1,7 +1,7 @@
 """A models folder (the default's models/, or a base) on the base's two test splits: the base test split and
 the held-out shapes and textures (issue #33: "the same figures on the held-out split").
 
-    python benchmarks/models_on_base_splits.py --models models [--json /tmp/heldout.json]
+    python benchmarks/models_on_base_splits.py --models models [--json /tmp/heldout.json] [--train-batches 24]
 
 Needs the base's shards (`cd base && dvc repro` made them: base/data/shards, base/data/shards_heldout).
 Stage 1: single step, scored by benchmarks/stage1_study.py's ``score`` (masked as evaluate does). Stage 2:
@@ -47,6 +47,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--models", type=Path, default=REPO / "models")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument(
+        "--train-batches",
+        type=int,
+        default=0,
+        help="also score stage 2 (ground-truth maps) on the first N batches of 8 of the base's train split: "
+        "what the network learnt on pairs it trained on, against the test split (the generalisation gap)",
+    )
     args = ap.parse_args(argv)
     from pilight import machine
 
@@ -60,6 +67,13 @@ def main(argv: list[str] | None = None) -> int:
             "stage2_gt_maps": score_stage2(m2, REPO / shards),
         }
         print(json.dumps({"split": name, **out[name]}), flush=True)
+    if args.train_batches:
+        train = score_stage2(m2, REPO / SPLITS["base test"], "train", args.train_batches)
+        out["base train"] = {"stage2_gt_maps": train, "batches": args.train_batches}
+        print(
+            json.dumps({"split": f"base train (first {args.train_batches} batches)", "stage2_gt_maps": train}),
+            flush=True,
+        )
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
     return 0

@@ -31,7 +31,9 @@ SINGLE_STEP = SamplingParams(mode="single_step", cfg_scale=1.0)
 
 
 @torch.no_grad()
-def score(task, shards: Path) -> dict[str, float]:
+def score(task, shards: Path, split: str = "test", max_batches: int | None = None) -> dict[str, float]:
+    """The figures above on ``split``'s cross-light pairs (its first ``max_batches`` batches of 8 when set:
+    the train split, scored to measure the generalisation gap, is large)."""
     from pilight.data.colour import tonemap01
     from pilight.data.shard_reader import eval_dataset, make_loader
     from pilight.eval.light_following import ChangeR2, cross_light
@@ -42,7 +44,9 @@ def score(task, shards: Path) -> dict[str, float]:
     r2 = {f"{m}_{i}": ChangeR2() for m in ("model", "anchor") for i in ("rel", "abs")}
     psnr = {k: [] for k in r2}
     gain_err, gain_var, gain_n = 0.0, 0.0, 0
-    for batch in make_loader(eval_dataset(shards, "test", "relight"), 8):
+    for n, batch in enumerate(make_loader(eval_dataset(shards, split, "relight"), 8)):
+        if max_batches is not None and n >= max_batches:
+            break
         batch = cross_light(batch)
         if batch is None:
             continue
@@ -74,7 +78,7 @@ def score(task, shards: Path) -> dict[str, float]:
     return out
 
 
-def run_seed(raw: dict, shards: Path, pred: Path, seed: int) -> dict:
+def run_seed(raw: dict, shards: Path, pred: Path, seed: int, train_batches: int = 0) -> dict:
     from pilight.train.loop import train
     from pilight.train.relight import RelightTask
 
@@ -88,7 +92,10 @@ def run_seed(raw: dict, shards: Path, pred: Path, seed: int) -> dict:
     with tempfile.TemporaryDirectory() as ckpt:
         stats = train(task, p.train, Path(ckpt), None, seed=seed)
     task.stack.model.eval()
-    return {"seed": seed, "train_seconds": stats["seconds"], "steps": stats["steps"], **score(task, shards)}
+    out = {"seed": seed, "train_seconds": stats["seconds"], "steps": stats["steps"], **score(task, shards)}
+    if train_batches:  # the same figures on pairs it trained on: underfitting or a generalisation gap?
+        out["train_split"] = score(task, shards, "train", train_batches)
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -101,6 +108,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--name", default=None)
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument(
+        "--train-batches", type=int, default=0, help="also score the first N batches of 8 of the train split"
+    )
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -111,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     result = {"name": args.name or " ".join(args.overrides) or "params", "overrides": args.overrides}
     result |= {"machine": machine.one_line(), "seeds": []}
     for seed in args.seeds:
-        r = run_seed(raw, args.shards, args.pred, seed)
+        r = run_seed(raw, args.shards, args.pred, seed, args.train_batches)
         result["seeds"].append(r)
         print(json.dumps(r), flush=True)
         if args.json:
