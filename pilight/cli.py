@@ -454,17 +454,22 @@ _SAID = ("UnverifiedModelWarning", "PhotoWarning", "LightWarning")  # our warnin
 @contextmanager
 def _say_warnings():
     """Inside the block, pilight's own warnings (an unverified model, a photo or light read with a change)
-    go to stderr as "pilight: warning: ..." lines; any other warning is shown as Python shows it."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        try:
+    go to stderr as "pilight: warning: ..." lines; any other warning is shown as Python shows it.
+
+    The warnings are said after the recording has ended: inside it, ``warnings.showwarning`` is the
+    recorder, so re-showing one appended it to the list being read, forever (CI's 24 GB OOM kills,
+    whenever a library warned inside the block)."""
+    caught: list[warnings.WarningMessage] = []
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
             yield
-        finally:
-            for w in caught:
-                if type(w.message).__name__ in _SAID:
-                    print(f"pilight: warning: {w.message}", file=sys.stderr)
-                else:
-                    warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+    finally:
+        for w in caught:
+            if type(w.message).__name__ in _SAID:
+                print(f"pilight: warning: {w.message}", file=sys.stderr)
+            else:
+                warnings.showwarning(w.message, w.category, w.filename, w.lineno)
 
 
 def check_model_options(args) -> None:
