@@ -246,7 +246,6 @@ def _score_initial_weights(
     module: Any,
     live: Any,
     sharded: bool,
-    checkpoint_dir: Path,
 ) -> float:
     """``train.steps: 0``: the loss of the untouched weights on the first batch (no gradient), logged at
     step 0 with the previews, so a run that trains nothing still leaves the metrics and pictures the
@@ -258,9 +257,7 @@ def _score_initial_weights(
         loss, scalars = task.loss(send_to_device(batch, acc.device), generator, model)
     value = acc.reduce(loss.detach().float(), "mean").item()
     if not math.isfinite(value):
-        raise ckpt.NonFiniteError(
-            f"non-finite loss {value} of the initial weights (train.steps: 0); {checkpoint_dir} is empty"
-        )
+        raise ckpt.NonFiniteError(f"non-finite loss {value} of the initial weights (train.steps: 0); nothing saved")
     if live is not None:
         live.step = 0
         live.log_metric("loss", value)
@@ -370,7 +367,7 @@ def train(
     win_t, win_n, win_loss, win_scalars = start, 0, torch.zeros((), device=acc.device), {}
     model.train()
     if cfg.steps == 0:  # the initial weights are the model (a shipped base used as is): scored, not trained
-        final_loss = _score_initial_weights(acc, task, generator, model, module, live, sharded, checkpoint_dir)
+        final_loss = _score_initial_weights(acc, task, generator, model, module, live, sharded)
     while step < cfg.steps:
         seen = 0
         batches = iter(task.batches(epoch))
