@@ -24,6 +24,7 @@ from pydantic import (
 )
 
 from pilight.data.layout import INTRINSIC_MAPS
+from pilight.optional import installed, missing
 
 # The HDRIs Blender ships in datafiles/studiolights/world (no download needed).
 BUNDLED_HDRIS = ("city", "courtyard", "forest", "interior", "night", "studio", "sunrise", "sunset")
@@ -584,6 +585,8 @@ class ConditioningParams(_Section):
     def _path(self, info: ValidationInfo) -> ConditioningParams:
         if self.kind == "clip" and not self.clip_path:
             raise ValueError("conditioning.kind is 'clip' but conditioning.clip_path is not set")
+        if self.kind == "clip" and not installed("transformers"):
+            raise ValueError(missing("transformers", "conditioning.kind: clip"))
         _weights_folder(self.clip_path, "conditioning.clip_path", info)
         return self
 
@@ -935,6 +938,8 @@ class RelightParams(ModelParams):
             )
         if self.rec_features == "dinov2" and not self.dinov2_path:
             raise ValueError("rec_features is 'dinov2' but dinov2_path is not set (a local DINOv2 folder)")
+        if self.rec_features == "dinov2" and not installed("transformers"):
+            raise ValueError(missing("transformers", "rec_features: dinov2"))
         _weights_folder(self.dinov2_path, "dinov2_path", info)
         return self
 

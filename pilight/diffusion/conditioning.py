@@ -17,6 +17,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from pilight.optional import require
+
 # CLIP's preprocessing constants (transformers' OPENAI_CLIP_MEAN / OPENAI_CLIP_STD).
 CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
 CLIP_STD = (0.26862954, 0.26130258, 0.27577711)
@@ -32,7 +34,7 @@ class ClipImageEmbedding(nn.Module):
 
     def __init__(self, path: str | os.PathLike):
         super().__init__()
-        from transformers import CLIPVisionModelWithProjection
+        CLIPVisionModelWithProjection = require("transformers", "conditioning.kind: clip").CLIPVisionModelWithProjection
 
         path = os.fspath(path)
         if not os.path.isdir(path):

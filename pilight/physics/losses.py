@@ -14,6 +14,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from pilight.optional import require
+
 from .shading import compose
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -116,7 +118,7 @@ class Dinov2Features(nn.Module):
 
     def __init__(self, path: str | os.PathLike, resolution: int = 224):
         super().__init__()
-        from transformers import Dinov2Model
+        Dinov2Model = require("transformers", "rec_features: dinov2").Dinov2Model
 
         path = os.fspath(path)
         if not os.path.isfile(os.path.join(path, "config.json")):
