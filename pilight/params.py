@@ -659,8 +659,8 @@ class TrainParams(_Section):
         0,
         ge=0,
         le=MAX_STEPS,
-        description="log each loss term's share of the gradient norm every N steps (stage 2; one backward "
-        "per term, pilight.train.grad_shares); 0 = off",
+        description="log each loss term's share of the gradient norm every N steps (stage 2's terms; stage 1's "
+        "maps with objective: task; one backward per term, pilight.train.grad_shares); 0 = off",
     )
     checkpoint_every: int = Field(200, ge=1, le=MAX_STEPS)
     keep_checkpoints: int = Field(2, ge=1, le=1000, description="each holds the weights and AdamW's state")

@@ -37,7 +37,8 @@ from pilight.models.intrinsics import IntrinsicsModel
 from pilight.models.stack import PREVIEW_SAMPLING
 from pilight.params import DOMAINS, IntrinsicsParams
 from pilight.pictures import to_uint8
-from pilight.train.map_losses import task_loss
+from pilight.train.grad_shares import grad_shares
+from pilight.train.map_losses import task_loss, weighted_terms
 
 
 def domain_targets(batch: dict, domains: tuple[str, ...] = DOMAINS, albedo_space: str = "linear") -> torch.Tensor:
@@ -109,6 +110,7 @@ class IntrinsicsTask(IntrinsicsModel):
         self.shard_dir, self.seed, self.device = Path(shard_dir), seed, device
         self.samples_per_batch = p.train.batch_size
         self.preview = PREVIEW_SAMPLING
+        self._calls = 0  # loss() calls, for train.grad_share_every (logging only: no effect on the weights)
 
     def trainable(self) -> torch.nn.Module:
         return self.stack.model
@@ -167,6 +169,11 @@ class IntrinsicsTask(IntrinsicsModel):
         gt = {d: batch[d].to(dev).float() for d in DOMAINS}
         mask = (batch["mask"].to(dev) > 0.5).float()
         loss, terms = task_loss(maps, gt, mask, self.p.task_loss)
+        self._calls += 1
+        every = self.p.train.grad_share_every
+        if every and self._calls % every == 0:  # each map's share of the gradient: which map the run learns from
+            weighted, _ = weighted_terms(maps, gt, mask, self.p.task_loss)
+            terms |= grad_shares(weighted, [prm for prm in s.model.parameters() if prm.requires_grad])
         return loss, terms | {"mask_fraction": float(mask.mean())}
 
     @torch.no_grad()

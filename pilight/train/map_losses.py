@@ -75,24 +75,37 @@ def albedo_loss(
     return structure + level_weight * level, {"albedo_structure": structure, "albedo_level": level}
 
 
+def weighted_terms(
+    pred: dict[str, torch.Tensor], gt: dict[str, torch.Tensor], mask: torch.Tensor, weights
+) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+    """({map: its weight x its loss}, {logged term: its unweighted value}) over the predicted maps;
+    ``weights``: the `intrinsics.task_loss` section. The first dict is what `train.grad_share_every`
+    splits the gradient by (pilight.train.grad_shares)."""
+    weighted: dict[str, torch.Tensor] = {}
+    terms: dict[str, torch.Tensor] = {}
+    if "albedo" in pred:
+        la, parts = albedo_loss(pred["albedo"], gt["albedo"], mask, weights.albedo_level)
+        terms |= parts
+        weighted["albedo"] = weights.albedo * la
+    if "normal" in pred:
+        terms["normal_angle"] = angular_loss(pred["normal"], gt["normal"], mask)
+        weighted["normal"] = weights.normal * terms["normal_angle"]
+    if "roughness" in pred:
+        terms["roughness_l1"] = l1_loss(pred["roughness"], gt["roughness"], mask)
+        weighted["roughness"] = weights.roughness * terms["roughness_l1"]
+    if "metallic" in pred:
+        terms["metallic_bce"] = bce_loss(pred["metallic"], gt["metallic"], mask)
+        weighted["metallic"] = weights.metallic * terms["metallic_bce"]
+    return weighted, terms
+
+
 def task_loss(
     pred: dict[str, torch.Tensor], gt: dict[str, torch.Tensor], mask: torch.Tensor, weights
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Weighted sum over the predicted maps; ``weights``: the `intrinsics.task_loss` section.
     ``pred`` holds linear maps (albedo in [0, 1], unit-ish normals, roughness and metallic in [0, 1])."""
-    terms: dict[str, torch.Tensor] = {}
+    weighted, terms = weighted_terms(pred, gt, mask, weights)
     total = pred[next(iter(pred))].new_zeros(())
-    if "albedo" in pred:
-        la, parts = albedo_loss(pred["albedo"], gt["albedo"], mask, weights.albedo_level)
-        terms |= parts
-        total = total + weights.albedo * la
-    if "normal" in pred:
-        terms["normal_angle"] = angular_loss(pred["normal"], gt["normal"], mask)
-        total = total + weights.normal * terms["normal_angle"]
-    if "roughness" in pred:
-        terms["roughness_l1"] = l1_loss(pred["roughness"], gt["roughness"], mask)
-        total = total + weights.roughness * terms["roughness_l1"]
-    if "metallic" in pred:
-        terms["metallic_bce"] = bce_loss(pred["metallic"], gt["metallic"], mask)
-        total = total + weights.metallic * terms["metallic_bce"]
+    for value in weighted.values():  # in the maps' order, as the sum always was: the same bits
+        total = total + value
     return total, {k: float(v.detach()) for k, v in terms.items()}

@@ -73,6 +73,31 @@ def test_bf16_autocast_loss_is_finite(shards):
     assert torch.isfinite(loss)
 
 
+@pytest.mark.parametrize("layout", ["joint", "domains"])
+def test_grad_shares_of_the_maps_are_logged_and_change_nothing(shards, layout):
+    """train.grad_share_every with objective: task: each map's share of the gradient norm is logged every
+    N calls, the shares sum to 1, and the loss and its gradient are those of a run without it."""
+    params = {**TINY, "objective": "task", "layout": layout}
+    params["schedule"] = {"rescale_zero_snr": True, "terminal_input": "zero"}
+    runs = {}
+    for every in (0, 2):
+        p = IntrinsicsParams.model_validate({**params, "train": {**TINY["train"], "grad_share_every": every}})
+        torch.manual_seed(0)
+        task = IntrinsicsTask(p, shards, seed=0)
+        logs = [task.loss(_batch(shards), torch.Generator().manual_seed(0))[1] for _ in range(2)]
+        loss, last = task.loss(_batch(shards), torch.Generator().manual_seed(0))
+        loss.backward()
+        runs[every] = (loss.detach(), [p.grad.clone() for p in task.trainable().parameters()], logs + [last])
+    assert all(not any(k.startswith("grad_share") for k in log) for log in runs[0][2])
+    first, second, third = runs[2][2]
+    assert not any(k.startswith("grad_share") for k in first) and not any(k.startswith("grad_share") for k in third)
+    shares = {k: v for k, v in second.items() if k.startswith("grad_share_")}
+    assert set(shares) == {f"grad_share_{d}" for d in DOMAINS}
+    assert sum(shares.values()) == pytest.approx(1.0) and all(v > 0 for v in shares.values())
+    assert torch.equal(runs[0][0], runs[2][0])
+    assert all(torch.equal(a, b) for a, b in zip(runs[0][1], runs[2][1], strict=True))
+
+
 def test_predict_a_subset_of_domains(shards):
     task = IntrinsicsTask(IntrinsicsParams.model_validate(TINY), shards, seed=0)
     b = _batch(shards)
