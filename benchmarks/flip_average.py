@@ -36,6 +36,7 @@ import torch.nn.functional as F
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from pilight.data.mirror import mirrored as mirror_map  # noqa: E402
 from pilight.models.intrinsics import IntrinsicsModel  # noqa: E402
 from pilight.models.relight import RelightModel  # noqa: E402
 
@@ -43,14 +44,8 @@ T95_LARGE = 1.98  # two-sided 95% t quantile for ~50-150 degrees of freedom
 
 
 def mirrored(key: str, v):
-    """A batch entry mirrored left-right; a normal map's x negated (the mirrored surface's normal)."""
-    if not torch.is_tensor(v) or v.ndim < 3:
-        return v
-    y = v.flip(-1)
-    if "normal" in key:
-        y = y.clone()
-        y[:, 0] = -y[:, 0]
-    return y
+    """A batch entry mirrored left-right (pilight.data.mirror); what is not an image passes as it is."""
+    return mirror_map(key, v) if torch.is_tensor(v) and v.ndim >= 3 else v
 
 
 def averaged_intrinsics(predict):

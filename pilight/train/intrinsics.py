@@ -30,6 +30,7 @@ import torch.nn.functional as F
 
 from pilight.data import schema
 from pilight.data.colour import linear_to_srgb, srgb_to_linear
+from pilight.data.mirror import mirrored
 from pilight.data.shard_reader import intrinsics_dataset, make_loader
 from pilight.diffusion.schedule import sample_timesteps, v_to_x0
 from pilight.eval.grids import labelled_grid
@@ -38,7 +39,7 @@ from pilight.models.stack import PREVIEW_SAMPLING
 from pilight.params import DOMAINS, IntrinsicsParams
 from pilight.pictures import to_uint8
 from pilight.train.grad_shares import grad_shares
-from pilight.train.map_losses import task_loss, weighted_terms
+from pilight.train.map_losses import summed, weighted_terms
 
 
 def domain_targets(batch: dict, domains: tuple[str, ...] = DOMAINS, albedo_space: str = "linear") -> torch.Tensor:
@@ -69,11 +70,9 @@ def augment(batch: dict, aug, generator: torch.Generator) -> dict:
     out = dict(batch)
     if aug.flip:
         flip = torch.rand(batch["image"].shape[0], generator=generator) < 0.5
-        sign = torch.tensor([-1.0, 1.0, 1.0]).view(1, 3, 1, 1)
         for k in keys:
             x = batch[k]
-            fx = x.flip(-1) * sign.to(x.dtype) if k == "normal" else x.flip(-1)
-            out[k] = torch.where(flip.view(-1, 1, 1, 1).to(x.device), fx, x)
+            out[k] = torch.where(flip.view(-1, 1, 1, 1).to(x.device), mirrored(k, x), x)
     if aug.crop is not None:
         h, w = batch["image"].shape[-2:]
         if aug.crop > min(h, w):
@@ -168,13 +167,13 @@ class IntrinsicsTask(IntrinsicsModel):
         maps = decoded_maps(pred, DOMAINS, self.p.albedo_space)
         gt = {d: batch[d].to(dev).float() for d in DOMAINS}
         mask = (batch["mask"].to(dev) > 0.5).float()
-        loss, terms = task_loss(maps, gt, mask, self.p.task_loss)
+        weighted, parts = weighted_terms(maps, gt, mask, self.p.task_loss)
+        terms = {k: float(v.detach()) for k, v in parts.items()}
         self._calls += 1
         every = self.p.train.grad_share_every
         if every and self._calls % every == 0:  # each map's share of the gradient: which map the run learns from
-            weighted, _ = weighted_terms(maps, gt, mask, self.p.task_loss)
             terms |= grad_shares(weighted, [prm for prm in s.model.parameters() if prm.requires_grad])
-        return loss, terms | {"mask_fraction": float(mask.mean())}
+        return summed(weighted), terms | {"mask_fraction": float(mask.mean())}
 
     @torch.no_grad()
     def images(self, batch: dict) -> dict[str, np.ndarray]:

@@ -99,13 +99,18 @@ def weighted_terms(
     return weighted, terms
 
 
+def summed(weighted: dict[str, torch.Tensor]) -> torch.Tensor:
+    """The total of ``weighted_terms``' first dict, added in the maps' order (the same bits as always)."""
+    total = next(iter(weighted.values())).new_zeros(())
+    for value in weighted.values():
+        total = total + value
+    return total
+
+
 def task_loss(
     pred: dict[str, torch.Tensor], gt: dict[str, torch.Tensor], mask: torch.Tensor, weights
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Weighted sum over the predicted maps; ``weights``: the `intrinsics.task_loss` section.
     ``pred`` holds linear maps (albedo in [0, 1], unit-ish normals, roughness and metallic in [0, 1])."""
     weighted, terms = weighted_terms(pred, gt, mask, weights)
-    total = pred[next(iter(pred))].new_zeros(())
-    for value in weighted.values():  # in the maps' order, as the sum always was: the same bits
-        total = total + value
-    return total, {k: float(v.detach()) for k, v in terms.items()}
+    return summed(weighted), {k: float(v.detach()) for k, v in terms.items()}
