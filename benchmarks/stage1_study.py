@@ -31,6 +31,7 @@ import torch
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # normal_frame
 
 from pilight.params import IntrinsicsParams, SamplingParams, read_params  # noqa: E402
 
@@ -87,6 +88,7 @@ def score(task, shards: Path, split: str, limit: int | None = None) -> dict[str,
     a_in = g["image"].clamp(0, 1)
     alpha_in = albedo_scale(a_in, g["albedo"], (m > 0.5).float())[:, None, None, None]
     normals = normal_metrics(angular_errors(p["normal"], g["normal"], m))
+    turns = [normal_turn(p["normal"][i], g["normal"][i], m[i, 0] > 0.5) for i in range(len(m)) if m[i].sum() > 0]
     return {
         "albedo_psnr": masked_psnr(p["albedo"], g["albedo"], m),
         "albedo_si_psnr": masked_psnr((alpha * p["albedo"]).clamp(0, 1), g["albedo"], m),
@@ -95,8 +97,20 @@ def score(task, shards: Path, split: str, limit: int | None = None) -> dict[str,
         "normal_median": normals["median_deg"],
         "roughness_mae": masked_mae(p["roughness"], g["roughness"], m),
         "metallic_mae": masked_mae(p["metallic"], g["metallic"], m),
+        # benchmarks/normal_frame.py: the turn about the camera's x axis that best aligns an image's normals
+        # (mean over images), and the normals' mean error at each image's best turn (a perfect-pitch oracle)
+        "normal_turn_deg": statistics.mean(t[0] for t in turns),
+        "normal_mean_turned": statistics.mean(t[1] for t in turns),
         "images": n,
     }
+
+
+def normal_turn(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> tuple[float, float]:
+    """(best turn in degrees, mean angular error there) of one image's normals (3, H, W) on ``mask`` (H, W)."""
+    from normal_frame import MAX_DEG, best_turn
+
+    unit = lambda n: torch.nn.functional.normalize(n.float(), dim=0)[:, mask]
+    return best_turn(unit(pred), unit(gt), range(-MAX_DEG, MAX_DEG + 1))
 
 
 def run_seed(raw: dict, shards: Path, seed: int, train_images: int, eval_shards: Path | None = None) -> dict:
