@@ -12,7 +12,8 @@ from fixtures.stage_scripts import TINY_NETWORK, params_file, run_stage, tiny_sh
 from pilight.data.shard_reader import intrinsics_dataset, make_loader
 from pilight.models.intrinsics import targets_to_maps
 from pilight.params import DOMAINS, IntrinsicsParams, SamplingParams
-from pilight.train.intrinsics import IntrinsicsTask, domain_targets, latent_mask, masked_latent_mse
+from pilight.train.intrinsics import IntrinsicsTask, decoded_maps, domain_targets, latent_mask, masked_latent_mse
+from pilight.train.map_losses import angular_loss
 
 TINY = {
     **TINY_NETWORK,
@@ -53,6 +54,21 @@ def test_targets_round_trip(shards, space):
     m = b["mask"] > 0.5
     cos = (back["normal"] * b["normal"]).sum(1, keepdim=True)
     assert (cos[m] > 0.999).all()
+
+
+def test_inference_reads_the_normal_the_angular_loss_trains():
+    """The task loss scores the direction of the raw output (decoded_maps leaves it unclamped, the angular
+    loss normalises it), so inference must read that direction: a component beyond 1 must not be clamped
+    first. The shipped base outputs such normals; clamping them tilted its test normals by ~12 degrees."""
+    raw = torch.zeros(1, len(DOMAINS), 3, 2, 2)
+    i = DOMAINS.index("normal")
+    raw[:, i, 1], raw[:, i, 2] = 2.5, 0.9  # a floor's normal, (0, 0.94, 0.34) once normalised, at a large scale
+    raw[:, i, 0, 0, 0] = -3.0  # and one leaning far left
+    decoded = decoded_maps(raw, DOMAINS, "linear")["normal"]
+    gt = torch.nn.functional.normalize(decoded, dim=1)
+    predicted = targets_to_maps(raw, DOMAINS, "linear")["normal"]
+    assert float(angular_loss(predicted, gt, torch.ones(1, 1, 2, 2))) < 0.01  # radians; the clamp gave 0.3
+    torch.testing.assert_close(predicted, gt)
 
 
 @pytest.mark.parametrize("t_fixed", [0, 999, None])
