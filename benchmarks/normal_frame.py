@@ -78,8 +78,15 @@ def per_image(pred_dir: Path, shards: Path, split: str, fixed: float | None) -> 
             gt = F.normalize(b["normal"][i].float(), dim=0)[:, m]
             phi, err = best_turn(pred, gt, angles)
             meta = json.loads(b["meta"][i])
-            rows.append({"kind": meta["kind"], "pitch": camera_pitch(meta), "error": mean_angle(pred, gt),
-                         "turned_error": err, "phi": phi})
+            rows.append(
+                {
+                    "kind": meta["kind"],
+                    "pitch": camera_pitch(meta),
+                    "error": mean_angle(pred, gt),
+                    "turned_error": err,
+                    "phi": phi,
+                }
+            )
     if not rows:
         raise DataError(f"{shards}: the {split} split has no masked images")
     return rows
@@ -100,12 +107,16 @@ def table(rows: list[dict], fixed: float | None) -> str:
         lo, hi = next(b for b in PITCH_BINS if b[0] <= r["pitch"] < b[1])
         groups.setdefault(f"pitch [{lo:g}, {hi:g})", []).append(r)
     turn = f"turned by {fixed:+g}°" if fixed is not None else "at each image's best turn"
-    lines = [f"| images | n | camera pitch (°) | normals mean error (°) | {turn} | best turn φ (°), 95 % t |",
-             "|---|---|---|---|---|---|"]
+    lines = [
+        f"| images | n | camera pitch (°) | normals mean error (°) | {turn} | best turn φ (°), 95 % t |",
+        "|---|---|---|---|---|---|",
+    ]
     for name, rs in groups.items():
-        mean = lambda k: statistics.mean(r[k] for r in rs)
-        lines.append(f"| {name} | {len(rs)} | {mean('pitch'):+.1f} | {mean('error'):.2f} | {mean('turned_error'):.2f} "
-                     f"| {interval([r['phi'] for r in rs]) if fixed is None else 'fixed'} |")
+        mean = lambda k, rs=rs: statistics.mean(r[k] for r in rs)
+        lines.append(
+            f"| {name} | {len(rs)} | {mean('pitch'):+.1f} | {mean('error'):.2f} | {mean('turned_error'):.2f} "
+            f"| {interval([r['phi'] for r in rs]) if fixed is None else 'fixed'} |"
+        )
     return "\n".join(lines)
 
 
