@@ -36,10 +36,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pilight.data.predictions import read_predictions  # noqa: E402
 from pilight.data.schema import DataError  # noqa: E402
 from pilight.data.shard_reader import intrinsics_dataset, make_loader  # noqa: E402
+from pilight.seeds import t_quantile  # noqa: E402
 
 MAX_DEG = 40
 PITCH_BINS = ((-90.0, -15.0), (-15.0, -5.0), (-5.0, 90.0))  # degrees, the camera looking down is negative
-T95 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306, 9: 2.262}
 
 
 def turned(normal: torch.Tensor, phi_deg: float) -> torch.Tensor:
@@ -96,7 +96,7 @@ def interval(xs: list[float]) -> str:
     if len(xs) < 2:
         return f"{xs[0]:+.1f}" if xs else "n/a"
     m, sd = statistics.mean(xs), statistics.stdev(xs)
-    half = T95.get(len(xs) - 1, 1.96) * sd / math.sqrt(len(xs))
+    half = t_quantile(len(xs) - 1) * sd / math.sqrt(len(xs))
     return f"{m:+.1f} [{m - half:+.1f}, {m + half:+.1f}]"
 
 
