@@ -2,16 +2,24 @@
 
 Physics-first relighting with the effective albedo (pilight.relight.physics_first) needs the input's
 own light. Rendered data carry its ball; a photo does not. On diffuse pixels a photo is I = A D(n),
-and the diffuse shading of any distant light is, to within a few percent, a second-order spherical
-harmonic expansion of the normal (Ramamoorthi & Hanrahan 2001, "An efficient representation for
-irradiance environment maps"):
+and the diffuse shading of any distant light is a spherical harmonic expansion of the normal
+(Ramamoorthi & Hanrahan 2001, "An efficient representation for irradiance environment maps"):
 
-    D(n) = sum_k c_k Y_k(n),   Y = (1, x, y, z, xy, yz, xz, x^2 - y^2, 3 z^2 - 1)
+    D(n) = sum_k c_k Y_k(n),   Y = (1, x, y, z | xy, yz, xz, x^2 - y^2, 3 z^2 - 1)
 
-so the nine c_k per channel follow from a least-squares fit of I to A Y(n) over the mask's dielectric
-pixels. The estimate is returned as the gray ball of that light, BALL_ALBEDO max(D(n), 0) at each
-ball normal, so it enters the same lookups as a rendered ball. It knows nothing of highlights (its
-Lambertian twin is itself) or of light from behind the visible hemisphere.
+Second order (all nine) holds ~99 % of a distant light's diffuse shading, first order (the four
+before the bar) ~88 %. We fit FIRST order (SH_TERMS = 4): the c_k per channel from a least-squares
+ridge fit of I to A Y(n) over the mask's dielectric pixels. Why not nine: one image's
+normals face the camera and cover a narrow cone, where the second-order terms are nearly collinear
+with the first; fitted, they bend the ball outside that cone, and the ball's level (which sets the
+target light's strength in relative intensity, pilight.relight.intensity) follows the bend. On the
+test pairs of three splits the physics anchor's relative-tier change_r2 on the mask rose from -0.13 /
+-0.10 / -0.34 (nine terms) to +0.14 / +0.15 / +0.11 (first order, stage-1 maps), with ground-truth
+maps from 0.28 / -0.01 / 0.26 to 0.36 / 0.33 / 0.36; the absolute tier moved by -0.01 to +0.03
+(docs/pipeline/stage2.md, "The source light's order"). The estimate is returned as the gray ball of
+that light, BALL_ALBEDO max(D(n), 0) at each ball normal, so it enters the same lookups as a
+rendered ball. It knows nothing of highlights (its Lambertian twin is itself) or of light from
+behind the visible hemisphere.
 """
 
 from __future__ import annotations
@@ -22,8 +30,11 @@ from .envmap import BALL_ALBEDO, ball_normals
 from .precision import in_full_precision
 
 MIN_PIXELS = 32  # fewer usable pixels than this cannot pin nine coefficients down
-RIDGE = 1e-6  # Tikhonov weight, relative to the normal matrix's mean diagonal (front-facing normals
-# leave the basis nearly collinear)
+SH_TERMS = 4  # first order: 1, x, y, z (module docstring: why not the nine of second order)
+RIDGE = 1e-2  # Tikhonov weight, relative to the normal matrix's mean diagonal: front-facing normals
+# leave even the first-order basis nearly collinear (1e-6, the nine terms' weight, let the level drift).
+# It shrinks a clean light's shading by ~3 %; a stronger one (0.1) costs a clean light 16 % for no
+# clear gain on stage-1 maps.
 METALLIC_MAX = 0.5  # pixels more metallic than this have no diffuse lobe to fit
 ALBEDO_MIN = 0.02  # black pixels carry no shading
 
@@ -47,10 +58,11 @@ def fit_diffuse_sh_found(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, 3, 9) coefficients c with image ~ albedo * sum_k c_k Y_k(normal) on usable pixels (masked,
     albedo above ALBEDO_MIN, and dielectric (metallic < METALLIC_MAX) unless fewer than MIN_PIXELS
-    are), and (B,) usable-pixel counts; an image with fewer than MIN_PIXELS keeps c = 0."""
+    are), and (B,) usable-pixel counts; an image with fewer than MIN_PIXELS keeps c = 0. Only the
+    first SH_TERMS are fitted; the second-order ones stay 0 (the layout stays the nine of sh_basis)."""
     usable = (mask[:, 0] > 0.5) & (albedo.float().mean(1) > ALBEDO_MIN)
     dielectric = usable & (metallic[:, 0] < METALLIC_MAX) if metallic is not None else usable
-    basis = sh_basis(normal.float())
+    basis = sh_basis(normal.float())[:, :SH_TERMS]
     out = torch.zeros(image.shape[0], 3, 9)
     counts = torch.zeros(image.shape[0], dtype=torch.long)
     for i in range(image.shape[0]):
@@ -60,12 +72,12 @@ def fit_diffuse_sh_found(
         counts[i] = int(sel.sum())
         if counts[i] < MIN_PIXELS:
             continue
-        y_k = basis[i][:, sel].T.double()  # (P, 9)
+        y_k = basis[i][:, sel].T.double()  # (P, SH_TERMS)
         for c in range(3):
             x = albedo[i, c][sel].double()[:, None] * y_k
             gram = x.T @ x
-            gram = gram + RIDGE * gram.diagonal().mean() * torch.eye(9, dtype=gram.dtype)
-            out[i, c] = torch.linalg.solve(gram, x.T @ image[i, c][sel].double()).float()
+            gram = gram + RIDGE * gram.diagonal().mean() * torch.eye(SH_TERMS, dtype=gram.dtype)
+            out[i, c, :SH_TERMS] = torch.linalg.solve(gram, x.T @ image[i, c][sel].double()).float()
     return out, counts
 
 
