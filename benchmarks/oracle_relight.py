@@ -138,6 +138,7 @@ def tier_forms(b: dict, c: dict) -> dict[str, dict[str, torch.Tensor]]:
 
     I_a, S, mask = b["image_a"].float(), b["specular_b"].float(), b["mask"]
     source = pf.source_balls(I_a, c, mask, b["ball_b"].shape[-1])
+    level_source = pf.source_balls(I_a, c, mask, b["ball_b"].shape[-1], level=True)
     cs = lambda g: cell_smooth(cell_mean(g, CELL), CELL)
     zero = torch.zeros_like(I_a)
     out = {"absolute": {"copy the input": I_a}, "relative": {"copy the input": I_a}}
@@ -145,7 +146,7 @@ def tier_forms(b: dict, c: dict) -> dict[str, dict[str, torch.Tensor]]:
     for tier in ("absolute", "relative"):
         balls = {k: b[k] for k in ("ball_b", "ball_lambertian_b") if k in b}
         if tier == "relative":
-            balls = to_source_level({k: relative_pair(b)[k] for k in balls}, *source)
+            balls = to_source_level({k: relative_pair(b)[k] for k in balls}, *level_source)
         anc = pf.anchors(
             I_a,
             c,

@@ -116,12 +116,16 @@ class RelightModel:
                 "ball): re-shard with this version, or use source_light: estimated (a photo has no ball)"
             )
         source = None  # the input's own light: (ball, found), when known or needed
+        size = balls["ball_b"].shape[-1]
         if rendered:
             source = (batch["ball_a"].to(dev), torch.ones(image_a.shape[0], dtype=torch.bool, device=dev))
-        elif effective or (intensity or self.p.intensity) == "relative":
-            source = pf.source_balls(image_a, intr, mask, balls["ball_b"].shape[-1])
+        elif effective:
+            source = pf.source_balls(image_a, intr, mask, size)
         if (intensity or self.p.intensity) == "relative":
-            balls = to_source_level(balls, *source)
+            # the level from its own fit (first order: pilight.physics.source_light), unless rendered
+            balls = to_source_level(
+                balls, *(source if rendered else pf.source_balls(image_a, intr, mask, size, level=True))
+            )
         ball_b = balls["ball_b"]
         if not self.physics_first:
             return condition_images(image_a, intr, ball_b, mask, self.with_d_calc), None, balls

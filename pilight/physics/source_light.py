@@ -2,24 +2,27 @@
 
 Physics-first relighting with the effective albedo (pilight.relight.physics_first) needs the input's
 own light. Rendered data carry its ball; a photo does not. On diffuse pixels a photo is I = A D(n),
-and the diffuse shading of any distant light is a spherical harmonic expansion of the normal
-(Ramamoorthi & Hanrahan 2001, "An efficient representation for irradiance environment maps"):
+and the diffuse shading of any distant light is, to within a few percent, a second-order spherical
+harmonic expansion of the normal (Ramamoorthi & Hanrahan 2001, "An efficient representation for
+irradiance environment maps"):
 
-    D(n) = sum_k c_k Y_k(n),   Y = (1, x, y, z | xy, yz, xz, x^2 - y^2, 3 z^2 - 1)
+    D(n) = sum_k c_k Y_k(n),   Y = (1, x, y, z, xy, yz, xz, x^2 - y^2, 3 z^2 - 1)
 
-Second order (all nine) holds ~99 % of a distant light's diffuse shading, first order (the four
-before the bar) ~88 %. We fit FIRST order (SH_TERMS = 4): the c_k per channel from a least-squares
-ridge fit of I to A Y(n) over the mask's dielectric pixels. Why not nine: one image's
-normals face the camera and cover a narrow cone, where the second-order terms are nearly collinear
-with the first; fitted, they bend the ball outside that cone, and the ball's level (which sets the
-target light's strength in relative intensity, pilight.relight.intensity) follows the bend. On the
+so the nine c_k per channel follow from a least-squares fit of I to A Y(n) over the mask's dielectric
+pixels. The estimate is returned as the gray ball of that light, BALL_ALBEDO max(D(n), 0) at each
+ball normal, so it enters the same lookups as a rendered ball. It knows nothing of highlights (its
+Lambertian twin is itself) or of light from behind the visible hemisphere.
+
+Two uses, two fits. The SHADING at the image's own normals (the effective albedo,
+pilight.relight.physics_first) is an interpolation, and the nine terms serve it best. The LEVEL of
+the light (the ball's mean, which sets a relative light's strength, pilight.relight.intensity) is an
+extrapolation over the whole ball, and there the nine terms mislead: a photo's normals face the
+camera and cover a narrow cone, where the second-order terms are nearly collinear with the first, and
+fitted they bend the ball outside the cone. ``estimate_source_level_balls`` fits first order (the
+four before the bar, ~88 % of a distant light's diffuse shading) with a ridge for the level. On the
 test pairs of three splits the physics anchor's relative-tier change_r2 on the mask rose from -0.13 /
--0.10 / -0.34 (nine terms) to +0.14 / +0.15 / +0.11 (first order, stage-1 maps), with ground-truth
-maps from 0.28 / -0.01 / 0.26 to 0.36 / 0.33 / 0.36; the absolute tier moved by -0.01 to +0.03
-(docs/pipeline/stage2.md, "The source light's order"). The estimate is returned as the gray ball of
-that light, BALL_ALBEDO max(D(n), 0) at each ball normal, so it enters the same lookups as a
-rendered ball. It knows nothing of highlights (its Lambertian twin is itself) or of light from
-behind the visible hemisphere.
+-0.10 / -0.34 to +0.13 / +0.15 / about +0.1 with stage-1 maps, the absolute and scale-invariant tiers
+unchanged (they do not use the level); docs/pipeline/stage2.md, "The source light's level".
 """
 
 from __future__ import annotations
@@ -30,11 +33,11 @@ from .envmap import BALL_ALBEDO, ball_normals
 from .precision import in_full_precision
 
 MIN_PIXELS = 32  # fewer usable pixels than this cannot pin nine coefficients down
-SH_TERMS = 4  # first order: 1, x, y, z (module docstring: why not the nine of second order)
-RIDGE = 1e-2  # Tikhonov weight, relative to the normal matrix's mean diagonal: front-facing normals
-# leave even the first-order basis nearly collinear (1e-6, the nine terms' weight, let the level drift).
-# It shrinks a clean light's shading by ~3 %; a stronger one (0.1) costs a clean light 16 % for no
-# clear gain on stage-1 maps.
+RIDGE = 1e-6  # Tikhonov weight, relative to the normal matrix's mean diagonal (front-facing normals
+# leave the basis nearly collinear)
+LEVEL_TERMS = 4  # the level's fit: first order, 1, x, y, z (module docstring)
+LEVEL_RIDGE = 1e-2  # its ridge: even four terms are nearly collinear on a narrow cone (it shrinks a clean
+# light's level by ~3 %; 1e-6 let it drift)
 METALLIC_MAX = 0.5  # pixels more metallic than this have no diffuse lobe to fit
 ALBEDO_MIN = 0.02  # black pixels carry no shading
 
@@ -55,14 +58,17 @@ def fit_diffuse_sh_found(
     normal: torch.Tensor,
     mask: torch.Tensor,
     metallic: torch.Tensor | None = None,
+    *,
+    terms: int = 9,
+    ridge: float = RIDGE,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, 3, 9) coefficients c with image ~ albedo * sum_k c_k Y_k(normal) on usable pixels (masked,
     albedo above ALBEDO_MIN, and dielectric (metallic < METALLIC_MAX) unless fewer than MIN_PIXELS
     are), and (B,) usable-pixel counts; an image with fewer than MIN_PIXELS keeps c = 0. Only the
-    first SH_TERMS are fitted; the second-order ones stay 0 (the layout stays the nine of sh_basis)."""
+    first ``terms`` are fitted (4: first order, for the level); the rest stay 0."""
     usable = (mask[:, 0] > 0.5) & (albedo.float().mean(1) > ALBEDO_MIN)
     dielectric = usable & (metallic[:, 0] < METALLIC_MAX) if metallic is not None else usable
-    basis = sh_basis(normal.float())[:, :SH_TERMS]
+    basis = sh_basis(normal.float())[:, :terms]
     out = torch.zeros(image.shape[0], 3, 9)
     counts = torch.zeros(image.shape[0], dtype=torch.long)
     for i in range(image.shape[0]):
@@ -72,12 +78,12 @@ def fit_diffuse_sh_found(
         counts[i] = int(sel.sum())
         if counts[i] < MIN_PIXELS:
             continue
-        y_k = basis[i][:, sel].T.double()  # (P, SH_TERMS)
+        y_k = basis[i][:, sel].T.double()  # (P, terms)
         for c in range(3):
             x = albedo[i, c][sel].double()[:, None] * y_k
             gram = x.T @ x
-            gram = gram + RIDGE * gram.diagonal().mean() * torch.eye(SH_TERMS, dtype=gram.dtype)
-            out[i, c, :SH_TERMS] = torch.linalg.solve(gram, x.T @ image[i, c][sel].double()).float()
+            gram = gram + ridge * gram.diagonal().mean() * torch.eye(terms, dtype=gram.dtype)
+            out[i, c, :terms] = torch.linalg.solve(gram, x.T @ image[i, c][sel].double()).float()
     return out, counts
 
 
@@ -133,4 +139,19 @@ def estimate_source_balls(
     gets a black ball and found = False, for the caller to handle (none is guessed)."""
     coeffs, counts = fit_diffuse_sh_found(image, albedo, normal, mask, metallic)
     # one image at a time: a batched einsum sums in another order, and the relit outputs' bytes would move
+    return torch.cat([sh_ball(c[None], size) for c in coeffs]), counts >= MIN_PIXELS
+
+
+@in_full_precision
+def estimate_source_level_balls(
+    image: torch.Tensor,
+    albedo: torch.Tensor,
+    normal: torch.Tensor,
+    mask: torch.Tensor,
+    size: int,
+    metallic: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """estimate_source_balls with the LEVEL's fit (first order, LEVEL_RIDGE; module docstring): the ball
+    whose light_level is the input light's level, for relative intensity. Not for the shading."""
+    coeffs, counts = fit_diffuse_sh_found(image, albedo, normal, mask, metallic, terms=LEVEL_TERMS, ridge=LEVEL_RIDGE)
     return torch.cat([sh_ball(c[None], size) for c in coeffs]), counts >= MIN_PIXELS

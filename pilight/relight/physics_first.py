@@ -60,7 +60,7 @@ import torch
 from pilight.diffusion.codec import cell_smooth
 from pilight.physics.calculated import diffuse_calculated, specular_calculated
 from pilight.physics.envmap import light_level
-from pilight.physics.source_light import estimate_source_balls
+from pilight.physics.source_light import estimate_source_balls, estimate_source_level_balls
 from pilight.physics.specular_model import specular_from_ball
 
 EPS_LEVEL = 0.05  # eps_b / level(ball_b): 5% of the light's mean shading
@@ -137,12 +137,14 @@ def anchors(
 
 
 def source_balls(
-    image_a: torch.Tensor, intr: dict[str, torch.Tensor], mask: torch.Tensor, size: int
+    image_a: torch.Tensor, intr: dict[str, torch.Tensor], mask: torch.Tensor, size: int, *, level: bool = False
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The input's own light, estimated from it and the conditioning albedo, normals and metallic
-    (pilight.physics.source_light): (balls (B, 3, size, size), found (B,)) on the input's device."""
+    (pilight.physics.source_light): (balls (B, 3, size, size), found (B,)) on the input's device.
+    ``level``: the fit for the light's level (relative intensity), not for the shading."""
     n, m, a_c = intr["normal"].float(), intr["metallic"].float(), intr["albedo"].float()
-    ball_a, found = estimate_source_balls(image_a.float().cpu(), a_c.cpu(), n.cpu(), mask.float().cpu(), size, m.cpu())
+    estimate = estimate_source_level_balls if level else estimate_source_balls
+    ball_a, found = estimate(image_a.float().cpu(), a_c.cpu(), n.cpu(), mask.float().cpu(), size, m.cpu())
     return ball_a.to(image_a.device), found.to(image_a.device)
 
 
