@@ -145,3 +145,20 @@ def test_ggx_specular_anchor_adds_the_microfacet_highlight_of_the_target_light()
     torch.testing.assert_close(relit["relit"], relit["albedo"] * relit["diffuse"] + relit["specular"])
     with pytest.raises(ValueError, match="specular anchor"):
         pf.anchors(b["image_a"], intr, b["mask"], b["ball_b"], None, specular="phong")
+
+
+def test_relative_intensity_takes_the_level_from_the_level_fit(tmp_path):
+    """A relative light is scaled to the input's level as the LEVEL's fit estimates it (first order,
+    pilight.physics.source_light), not the shading's nine-term fit, whose ball strays outside the
+    image's normals."""
+    from pilight.physics.envmap import light_level
+
+    task = tiny_relight_task(tmp_path, intensity="relative")
+    b = physics_pair()
+    intr = {k: b[k] for k in ("albedo", "normal", "roughness", "metallic")}
+    _, _, balls = task._conditions(b, intr, "cpu")
+    size = b["ball_b"].shape[-1]
+    by_level_fit, _ = pf.source_balls(b["image_a"], intr, b["mask"], size, level=True)
+    by_shading_fit, _ = pf.source_balls(b["image_a"], intr, b["mask"], size)
+    torch.testing.assert_close(balls["ball_b"], b["ball_b"] * light_level(by_level_fit))
+    assert not torch.allclose(light_level(by_level_fit), light_level(by_shading_fit), rtol=1e-3)
