@@ -1,0 +1,153 @@
+"""Which fit of the input's light should set a relative light's level? The physics anchor, three ways.
+
+    python benchmarks/source_light_level.py [--shards data/shards] [--pred data/intrinsics_pred] [--split test]
+                                            [--batches N] [--json FILE]
+
+Physics-first relighting estimates the input's own light from the input and its intrinsics
+(pilight.physics.source_light) for two things: the SHADING at the image's normals (inside the
+effective albedo) and the LEVEL (the estimated ball's mean, which scales a relative light;
+pilight.relight.intensity). For every cross-light pair of the split, the default form's anchor (zero
+gains: effective albedo, cell-smoothed lookups, GGX specular) is formed with the light estimated by:
+
+  nine terms         second-order SH for both (the pipeline until 2026-12-06)
+  first order        first-order SH with the level's ridge for both
+  split (pipeline)   nine terms for the shading, first order for the level (pf.source_balls)
+  rendered ball_a    the shards' own ball of light a for both (what no photo has)
+
+each scored in the three tiers of the evaluation (absolute: the target ball as rendered; relative:
+told r = level(ball_b) / level(ball_a) and scaled to the estimated level; scale-invariant: the
+absolute image at its best scale on the mask), with ground-truth and stage-1 conditions. Printed:
+change_r2 on the mask, PSNR and SSIM (tone-mapped), as oracle_relight.py scores them. No model.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import torch
+
+from pilight.data.colour import tonemap01
+from pilight.data.shard_reader import eval_dataset, make_loader
+from pilight.eval.light_following import ChangeR2
+from pilight.eval.metrics import psnr_per_image, ssim_per_image
+from pilight.eval.scale_invariant import scaled_to
+from pilight.physics.source_light import LEVEL_RIDGE, LEVEL_TERMS, MIN_PIXELS, fit_diffuse_sh_found, sh_ball
+from pilight.relight import physics_first as pf
+from pilight.relight.conditions import optional_predictions, oracle_conditions
+from pilight.relight.intensity import relative_pair, to_source_level
+
+TIERS = ("absolute", "relative", "scale_invariant")
+CELL = 4
+
+
+def first_order(image_a: torch.Tensor, c: dict, mask: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The level's fit (first order, its ridge) as a ball, for the shading too."""
+    coeffs, counts = fit_diffuse_sh_found(
+        image_a.float(),
+        c["albedo"].float(),
+        c["normal"].float(),
+        mask.float(),
+        c["metallic"].float(),
+        terms=LEVEL_TERMS,
+        ridge=LEVEL_RIDGE,
+    )
+    return torch.cat([sh_ball(k[None], size) for k in coeffs]), counts >= MIN_PIXELS
+
+
+def estimates(b: dict, c: dict) -> dict[str, tuple[tuple, tuple]]:
+    """{name: ((shading ball, found), (level ball, found))}."""
+    I_a, mask, size = b["image_a"].float(), b["mask"], b["ball_b"].shape[-1]
+    nine = pf.source_balls(I_a, c, mask, size)
+    first = first_order(I_a, c, mask, size)
+    rendered = (b["ball_a"], torch.ones(I_a.shape[0], dtype=torch.bool))
+    return {
+        "nine terms": (nine, nine),
+        "first order": (first, first),
+        "split (pipeline)": (nine, pf.source_balls(I_a, c, mask, size, level=True)),
+        "rendered ball_a": (rendered, rendered),
+    }
+
+
+def anchor_images(b: dict, c: dict, shading: tuple, level: tuple) -> dict[str, torch.Tensor]:
+    """{tier: the anchor's linear relit image, the input off the mask}."""
+    I_a, mask = b["image_a"].float(), b["mask"]
+    zero = torch.zeros_like(I_a)
+    out = {}
+    for tier in ("absolute", "relative"):
+        balls = {k: b[k] for k in ("ball_b", "ball_lambertian_b") if k in b}
+        if tier == "relative":
+            balls = to_source_level({k: relative_pair(b)[k] for k in balls}, *level)
+        anc = pf.anchors(
+            I_a,
+            c,
+            mask,
+            balls["ball_b"],
+            balls.get("ball_lambertian_b"),
+            ball_a=shading[0],
+            found=shading[1],
+            smooth_cell=CELL,
+            specular="ggx",
+        )
+        out[tier] = torch.where(mask > 0.5, pf.compose_relit(anc, zero, zero)["relit"], I_a)
+    out["scale_invariant"] = torch.where(mask > 0.5, scaled_to(out["absolute"], b["image_b"].float(), mask), I_a)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--shards", type=Path, default=Path("data/shards"))
+    ap.add_argument("--pred", type=Path, default=Path("data/intrinsics_pred"))
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--batches", type=int, default=None, help="only the first N batches of 8 (a train split)")
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args(argv)
+    preds = optional_predictions(args.shards, args.pred, args.split, "source_light_level")
+    settings = {"gt": None} | ({"pred": preds} if preds is not None else {})
+    scores: dict[tuple, dict] = {}
+    pairs = 0
+    for i, b in enumerate(make_loader(eval_dataset(args.shards, args.split, "relight"), 8)):
+        if args.batches is not None and i >= args.batches:
+            break
+        cross = torch.tensor(
+            [json.loads(a)["light"] != json.loads(c)["light"] for a, c in zip(b["meta_a"], b["meta_b"])]
+        )
+        if not cross.any():
+            continue
+        b = {k: (v[cross] if torch.is_tensor(v) else [x for x, keep in zip(v, cross) if keep]) for k, v in b.items()}
+        pairs += int(cross.sum())
+        u_in, u_gt = tonemap01(b["image_a"]), tonemap01(b["image_b"])
+        for setting, p in settings.items():
+            c = oracle_conditions(b, p)
+            for name, (shading, level) in estimates(b, c).items():
+                for tier, img in anchor_images(b, c, shading, level).items():
+                    r = scores.setdefault((setting, tier, name), {"r2": ChangeR2(), "psnr": [], "ssim": []})
+                    u = tonemap01(img)
+                    r["r2"].update(u, u_gt, u_in, b["mask"])
+                    r["psnr"].append(psnr_per_image(u, u_gt))
+                    r["ssim"].append(ssim_per_image(u, u_gt))
+    table: dict = {}
+    print(f"{args.split}: {pairs} cross-light pairs; the physics anchor (zero gains) with each fit of light a")
+    print(f"{'conditions':10s} {'tier':16s} {'fit':18s} {'r2 mask':>8s} {'PSNR':>7s} {'SSIM':>6s}")
+    for setting in settings:
+        for tier in TIERS:
+            for name in ("nine terms", "first order", "split (pipeline)", "rendered ball_a"):
+                r = scores[(setting, tier, name)]
+                row = {
+                    "change_r2_mask": r["r2"].compute()["mask"],
+                    "psnr": float(torch.cat(r["psnr"]).mean()),
+                    "ssim": float(torch.cat(r["ssim"]).mean()),
+                }
+                table.setdefault(setting, {}).setdefault(tier, {})[name] = row
+                print(
+                    f"{setting:10s} {tier:16s} {name:18s} {row['change_r2_mask']:8.3f} {row['psnr']:7.2f} {row['ssim']:6.3f}"
+                )
+    if args.json:
+        args.json.write_text(json.dumps({"pairs": pairs, "split": args.split, "anchors": table}, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
