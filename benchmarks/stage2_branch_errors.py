@@ -1,0 +1,143 @@
+"""Which of stage 2's branches costs the relit image most? Predicted and true gains, mixed.
+
+    python benchmarks/stage2_branch_errors.py --model weights/pilight-base/relight --shards base/data/shards
+        [--split train --batches 24] [--pred <stage-1 predictions>] [--json FILE]
+
+The physics-first form relights as I = A_x D + S on the mask, with D and S gains g_D, g_S on their
+physics anchors (pilight.relight.physics_first). For each cross-light pair (relative intensity, single
+step), the model's gains are set beside the true ones (the training targets, cell means) and the relit
+image is formed from every mix of D and S in {model, truth, anchor (zero gain)}. Printed: the mean
+tone-mapped squared error on the mask of each mix (what the image loss sees), and per branch the share
+of its target's variance the model explains (cell gains; on the mask for D and S, off it for the relit
+branch's gain on the input). Conditions: ground-truth maps, or stage-1 predictions with --pred.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from pilight.params import SamplingParams  # noqa: E402
+
+SINGLE_STEP = SamplingParams(mode="single_step", cfg_scale=1.0)
+SOURCES = ("model", "truth", "anchor")
+BRANCHES = ("relit", "diffuse", "specular")
+
+
+def mixed_errors(anc, true_g: torch.Tensor, model_g: torch.Tensor, image_b: torch.Tensor, mask: torch.Tensor) -> dict:
+    """{"D <source>, S <source>": (sum of squared tone-mapped errors on the mask, pixel count)} for every
+    mix; true_g, model_g: (B, 3, 3, H, W) cell-smoothed gains of the relit, D and S branches."""
+    from pilight.relight import physics_first as pf
+    from pilight.relight.encoding import tonemap
+
+    gains = {"model": model_g, "truth": true_g, "anchor": torch.zeros_like(true_g)}
+    target = tonemap(image_b.float())
+    m = (mask[:, :1] > 0.5).float().expand_as(target)
+    out = {}
+    for d in SOURCES:
+        for s in SOURCES:
+            relit = tonemap(pf.compose_relit(anc, gains[d][:, 1], gains[s][:, 2])["relit"])
+            out[f"D {d}, S {s}"] = (float((m * (relit - target) ** 2).sum()), float(m.sum()))
+    return out
+
+
+def explained(true_g: torch.Tensor, model_g: torch.Tensor, mask: torch.Tensor) -> dict:
+    """{branch: (sum sq error, sum target, sum target^2, weight)} for the explained-variance share."""
+    m = (mask[:, :1] > 0.5).float()
+    out = {}
+    for i, name in enumerate(BRANCHES):
+        w = ((1 - m) if name == "relit" else m).expand_as(true_g[:, i])
+        t, o = true_g[:, i], model_g[:, i]
+        out[name] = (float((w * (t - o) ** 2).sum()), float((w * t).sum()), float((w * t * t).sum()), float(w.sum()))
+    return out
+
+
+def load(folder: Path):
+    from pilight.models.folder import load_model
+    from pilight.models.relight import RelightModel
+    from pilight.params import RelightParams
+
+    raw = json.loads((folder / "config.json").read_text())["params"]
+    raw |= {"conditions": "gt", "rec_features": "pooled-rgb", "dinov2_path": None}  # training-only keys
+    model = RelightModel(RelightParams.model_validate(raw))
+    load_model(model.stack, folder)
+    model.stack.model.eval()
+    return model
+
+
+@torch.no_grad()
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--model", type=Path, required=True, help="a stage-2 folder (config.json + weights)")
+    ap.add_argument("--shards", type=Path, required=True)
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--batches", type=int, default=None, help="only the first N batches of 8")
+    ap.add_argument("--pred", type=Path, default=None, help="stage-1 predictions as conditions (default: truth)")
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args(argv)
+    from pilight.data.shard_reader import eval_dataset, make_loader
+    from pilight.diffusion.codec import cell_smooth
+    from pilight.eval.light_following import cross_light
+    from pilight.relight.branches import encode_conditions
+    from pilight.relight.conditions import optional_predictions, oracle_conditions
+    from pilight.relight.intensity import relative_pair
+    from pilight.train.relight import RelightTask
+
+    model = load(args.model)
+    if model.form.kind != "physics_first":
+        raise SystemExit(f"{args.model}: form {model.form.kind!r}; this benchmark reads physics-first gains")
+    preds = optional_predictions(args.shards, args.pred, args.split, "stage2_branch_errors") if args.pred else None
+    errors: dict = {}
+    variance: dict = {}
+    pairs = 0
+    for n, batch in enumerate(make_loader(eval_dataset(args.shards, args.split, "relight"), 8)):
+        if args.batches is not None and n >= args.batches:
+            break
+        batch = cross_light(batch)
+        if batch is None:
+            continue
+        pairs += batch["image_a"].shape[0]
+        batch = relative_pair(batch)
+        intr = oracle_conditions(batch, preds)
+        maps, anc, _ = model._conditions(batch, intr, "cpu")
+        # the training targets, as the stage-2 task forms them (cell means of g_r, g_D, g_S)
+        true_g = RelightTask._physics_first_targets(model, batch, anc, maps["image"], "cpu")
+        B, z_cond = batch["image_a"].shape[0], encode_conditions(model.stack.codec, maps, model.layout, model.width)
+        z0 = model.stack.sample(z_cond, torch.arange(model.V).repeat(B), maps["image"], model.V, SINGLE_STEP, None)
+        model_g = model.stack.codec.decode(z0).float().unflatten(0, (B, model.V))
+        # as inference reads them (RelightModel._physics_first_outputs): cell-smoothed
+        model_g = torch.stack([cell_smooth(model_g[:, i], model._cell) for i in range(3)], 1)
+        true_g = torch.stack([cell_smooth(true_g[:, i], model._cell) for i in range(3)], 1)
+        for k, (sq, cnt) in mixed_errors(anc, true_g, model_g, batch["image_b"], batch["mask"]).items():
+            e = errors.setdefault(k, [0.0, 0.0])
+            e[0], e[1] = e[0] + sq, e[1] + cnt
+        for k, vals in explained(true_g, model_g, batch["mask"]).items():
+            v = variance.setdefault(k, [0.0] * 4)
+            variance[k] = [a + b for a, b in zip(v, vals)]
+    table = {"pairs": pairs, "split": args.split, "conditions": "stage-1" if args.pred else "ground truth"}
+    table["mse_on_mask"] = {k: sq / max(cnt, 1) for k, (sq, cnt) in errors.items()}
+    table["explained"] = {}
+    for k, (err, s1, s2, w) in variance.items():
+        var = s2 - s1 * s1 / max(w, 1)
+        table["explained"][k] = 1 - err / var if var > 0 else float("nan")
+    print(f"{args.model} on {args.split} ({pairs} cross-light pairs, {table['conditions']} maps, relative)")
+    print("tone-mapped squared error on the mask of I = A_x D + S:")
+    for k, v in table["mse_on_mask"].items():
+        print(f"  {k:28s} {v:.5f}")
+    print("share of each branch's target variance the model explains:")
+    for k, v in table["explained"].items():
+        print(f"  {k:10s} {v:+.3f}")
+    if args.json:
+        args.json.write_text(json.dumps(table, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

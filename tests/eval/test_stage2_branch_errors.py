@@ -1,0 +1,51 @@
+"""benchmarks/stage2_branch_errors.py: mixing predicted and true gains. A model whose gains are the
+truth's scores the truth's error, one whose gains are zero scores the anchor's, and the explained share
+is 1 for perfect gains and 0 for the target's own mean."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+import torch
+
+from fixtures.relight_pairs import physics_pair
+from pilight.relight import physics_first as pf
+
+SPEC = importlib.util.spec_from_file_location(
+    "stage2_branch_errors", Path(__file__).resolve().parents[2] / "benchmarks" / "stage2_branch_errors.py"
+)
+branch_errors = importlib.util.module_from_spec(SPEC)
+SPEC.loader.exec_module(branch_errors)
+
+
+def setup():
+    b = physics_pair()
+    intr = {k: b[k] for k in ("albedo", "normal", "roughness", "metallic")}
+    anc = pf.anchors(b["image_a"], intr, b["mask"], b["ball_b"], None, ball_a=b["ball_a"])
+    true_g = 0.3 * torch.randn(2, 3, 3, *b["image_a"].shape[-2:], generator=torch.Generator().manual_seed(1))
+    return b, anc, true_g
+
+
+def test_perfect_gains_score_the_truth_and_zero_gains_the_anchor():
+    b, anc, true_g = setup()
+    perfect = branch_errors.mixed_errors(anc, true_g, true_g, b["image_b"], b["mask"])
+    assert perfect["D model, S model"] == perfect["D truth, S truth"]
+    assert perfect["D model, S truth"] == perfect["D truth, S truth"]
+    none = branch_errors.mixed_errors(anc, true_g, torch.zeros_like(true_g), b["image_b"], b["mask"])
+    assert none["D model, S model"] == none["D anchor, S anchor"]
+    assert none["D model, S model"] != none["D truth, S truth"]
+
+
+def test_explained_share_is_one_for_perfect_gains_and_zero_for_the_mean():
+    b, _, true_g = setup()
+    share = lambda g: {
+        k: 1 - e / (s2 - s1 * s1 / w) for k, (e, s1, s2, w) in branch_errors.explained(true_g, g, b["mask"]).items()
+    }
+    assert all(v == pytest.approx(1.0) for v in share(true_g).values())
+    m = (b["mask"][:, :1] > 0.5).float()
+    diffuse_mean = (true_g[:, 1] * m).sum() / m.expand_as(true_g[:, 1]).sum()
+    mean_g = true_g.clone()
+    mean_g[:, 1] = diffuse_mean
+    assert share(mean_g)["diffuse"] == pytest.approx(0.0, abs=1e-6)
