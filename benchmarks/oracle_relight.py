@@ -129,16 +129,19 @@ def candidates(b: dict, c: dict) -> dict[str, torch.Tensor]:
     return out
 
 
-def tier_forms(b: dict, c: dict) -> dict[str, dict[str, torch.Tensor]]:
+def tier_forms(b: dict, c: dict, sources: tuple | None = None) -> dict[str, dict[str, torch.Tensor]]:
     """{tier: {name: linear relit}} for --tiers (module docstring); the scale-invariant tier's images are
-    the absolute ones, scaled when scored."""
+    the absolute ones, scaled when scored. ``sources``: ((shading ball, found), (level ball, found)) of
+    light a, default the pipeline's estimates (pf.source_balls; benchmarks/source_light_level.py varies them)."""
     from pilight.eval.relight_tiers import exposure_matched_copy
     from pilight.relight import physics_first as pf
     from pilight.relight.intensity import relative_pair, to_source_level
 
     I_a, S, mask = b["image_a"].float(), b["specular_b"].float(), b["mask"]
-    source = pf.source_balls(I_a, c, mask, b["ball_b"].shape[-1])
-    level_source = pf.source_balls(I_a, c, mask, b["ball_b"].shape[-1], level=True)
+    if sources is None:
+        size = b["ball_b"].shape[-1]
+        sources = (pf.source_balls(I_a, c, mask, size), pf.source_balls(I_a, c, mask, size, level=True))
+    source, level_source = sources
     cs = lambda g: cell_smooth(cell_mean(g, CELL), CELL)
     zero = torch.zeros_like(I_a)
     out = {"absolute": {"copy the input": I_a}, "relative": {"copy the input": I_a}}

@@ -29,69 +29,39 @@ from pathlib import Path
 
 import torch
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.oracle_relight import tier_forms  # noqa: E402
 from pilight.data.colour import tonemap01
 from pilight.data.shard_reader import eval_dataset, make_loader
 from pilight.eval.light_following import ChangeR2
 from pilight.eval.metrics import psnr_per_image, ssim_per_image
 from pilight.eval.scale_invariant import scaled_to
-from pilight.physics.source_light import LEVEL_RIDGE, LEVEL_TERMS, MIN_PIXELS, fit_diffuse_sh_found, sh_ball
 from pilight.relight import physics_first as pf
 from pilight.relight.conditions import optional_predictions, oracle_conditions
-from pilight.relight.intensity import relative_pair, to_source_level
 
 TIERS = ("absolute", "relative", "scale_invariant")
-CELL = 4
-
-
-def first_order(image_a: torch.Tensor, c: dict, mask: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """The level's fit (first order, its ridge) as a ball, for the shading too."""
-    coeffs, counts = fit_diffuse_sh_found(
-        image_a.float(),
-        c["albedo"].float(),
-        c["normal"].float(),
-        mask.float(),
-        c["metallic"].float(),
-        terms=LEVEL_TERMS,
-        ridge=LEVEL_RIDGE,
-    )
-    return torch.cat([sh_ball(k[None], size) for k in coeffs]), counts >= MIN_PIXELS
 
 
 def estimates(b: dict, c: dict) -> dict[str, tuple[tuple, tuple]]:
     """{name: ((shading ball, found), (level ball, found))}."""
     I_a, mask, size = b["image_a"].float(), b["mask"], b["ball_b"].shape[-1]
     nine = pf.source_balls(I_a, c, mask, size)
-    first = first_order(I_a, c, mask, size)
+    first = pf.source_balls(I_a, c, mask, size, level=True)
     rendered = (b["ball_a"], torch.ones(I_a.shape[0], dtype=torch.bool))
     return {
         "nine terms": (nine, nine),
         "first order": (first, first),
-        "split (pipeline)": (nine, pf.source_balls(I_a, c, mask, size, level=True)),
+        "split (pipeline)": (nine, first),
         "rendered ball_a": (rendered, rendered),
     }
 
 
 def anchor_images(b: dict, c: dict, shading: tuple, level: tuple) -> dict[str, torch.Tensor]:
-    """{tier: the anchor's linear relit image, the input off the mask}."""
+    """{tier: the anchor's linear relit image, the input off the mask} (oracle_relight.tier_forms)."""
+    forms = tier_forms(b, c, (shading, level))
     I_a, mask = b["image_a"].float(), b["mask"]
-    zero = torch.zeros_like(I_a)
-    out = {}
-    for tier in ("absolute", "relative"):
-        balls = {k: b[k] for k in ("ball_b", "ball_lambertian_b") if k in b}
-        if tier == "relative":
-            balls = to_source_level({k: relative_pair(b)[k] for k in balls}, *level)
-        anc = pf.anchors(
-            I_a,
-            c,
-            mask,
-            balls["ball_b"],
-            balls.get("ball_lambertian_b"),
-            ball_a=shading[0],
-            found=shading[1],
-            smooth_cell=CELL,
-            specular="ggx",
-        )
-        out[tier] = torch.where(mask > 0.5, pf.compose_relit(anc, zero, zero)["relit"], I_a)
+    out = {t: torch.where(mask > 0.5, forms[t]["anchor (zero gains)"], I_a) for t in ("absolute", "relative")}
     out["scale_invariant"] = torch.where(mask > 0.5, scaled_to(out["absolute"], b["image_b"].float(), mask), I_a)
     return out
 

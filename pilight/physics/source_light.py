@@ -18,7 +18,7 @@ pilight.relight.physics_first) is an interpolation, and the nine terms serve it 
 the light (the ball's mean, which sets a relative light's strength, pilight.relight.intensity) is an
 extrapolation over the whole ball, and there the nine terms mislead: a photo's normals face the
 camera and cover a narrow cone, where the second-order terms are nearly collinear with the first, and
-fitted they bend the ball outside the cone. ``estimate_source_level_balls`` fits first order (the
+fitted they bend the ball outside the cone. ``estimate_source_balls(level=True)`` fits first order (the
 four before the bar, ~88 % of a distant light's diffuse shading) with a ridge for the level. On the
 test pairs of three splits the physics anchor's relative-tier change_r2 on the mask rose from -0.13 /
 -0.10 / -0.34 to +0.13 / +0.15 / about +0.1 with stage-1 maps, the absolute and scale-invariant tiers
@@ -134,24 +134,14 @@ def estimate_source_balls(
     mask: torch.Tensor,
     size: int,
     metallic: torch.Tensor | None = None,
+    *,
+    level: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per image: (balls (B, 3, size, size), found (B,) bool); an image with too few usable pixels
-    gets a black ball and found = False, for the caller to handle (none is guessed)."""
-    coeffs, counts = fit_diffuse_sh_found(image, albedo, normal, mask, metallic)
+    gets a black ball and found = False, for the caller to handle (none is guessed). ``level``: the
+    LEVEL's fit (first order, LEVEL_RIDGE; module docstring), the ball whose light_level is the input
+    light's level for relative intensity; else the shading's (nine terms)."""
+    fit = {"terms": LEVEL_TERMS, "ridge": LEVEL_RIDGE} if level else {}
+    coeffs, counts = fit_diffuse_sh_found(image, albedo, normal, mask, metallic, **fit)
     # one image at a time: a batched einsum sums in another order, and the relit outputs' bytes would move
-    return torch.cat([sh_ball(c[None], size) for c in coeffs]), counts >= MIN_PIXELS
-
-
-@in_full_precision
-def estimate_source_level_balls(
-    image: torch.Tensor,
-    albedo: torch.Tensor,
-    normal: torch.Tensor,
-    mask: torch.Tensor,
-    size: int,
-    metallic: torch.Tensor | None = None,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """estimate_source_balls with the LEVEL's fit (first order, LEVEL_RIDGE; module docstring): the ball
-    whose light_level is the input light's level, for relative intensity. Not for the shading."""
-    coeffs, counts = fit_diffuse_sh_found(image, albedo, normal, mask, metallic, terms=LEVEL_TERMS, ridge=LEVEL_RIDGE)
     return torch.cat([sh_ball(c[None], size) for c in coeffs]), counts >= MIN_PIXELS

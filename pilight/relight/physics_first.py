@@ -60,7 +60,7 @@ import torch
 from pilight.diffusion.codec import cell_smooth
 from pilight.physics.calculated import diffuse_calculated, specular_calculated
 from pilight.physics.envmap import light_level
-from pilight.physics.source_light import estimate_source_balls, estimate_source_level_balls
+from pilight.physics.source_light import estimate_source_balls
 from pilight.physics.specular_model import specular_from_ball
 
 EPS_LEVEL = 0.05  # eps_b / level(ball_b): 5% of the light's mean shading
@@ -143,8 +143,9 @@ def source_balls(
     (pilight.physics.source_light): (balls (B, 3, size, size), found (B,)) on the input's device.
     ``level``: the fit for the light's level (relative intensity), not for the shading."""
     n, m, a_c = intr["normal"].float(), intr["metallic"].float(), intr["albedo"].float()
-    estimate = estimate_source_level_balls if level else estimate_source_balls
-    ball_a, found = estimate(image_a.float().cpu(), a_c.cpu(), n.cpu(), mask.float().cpu(), size, m.cpu())
+    ball_a, found = estimate_source_balls(
+        image_a.float().cpu(), a_c.cpu(), n.cpu(), mask.float().cpu(), size, m.cpu(), level=level
+    )
     return ball_a.to(image_a.device), found.to(image_a.device)
 
 

@@ -12,7 +12,6 @@ from pilight.physics.source_light import (
     SourceLightError,
     estimate_source_ball,
     estimate_source_balls,
-    estimate_source_level_balls,
     fit_diffuse_sh,
     fit_diffuse_sh_found,
     sh_ball,
@@ -107,7 +106,7 @@ def test_the_level_of_a_light_seen_on_a_narrow_cone_of_normals_stays_near_the_tr
     albedo = torch.full((1, 3, *n.shape[-2:]), 0.5) * cone
     image = albedo * diffuse_calculated(ball, n, cone, zeros)
     noise = 1 + 0.2 * torch.randn(1, 1, *n.shape[-2:], generator=torch.Generator().manual_seed(seed))
-    level, found = estimate_source_level_balls(image, albedo * noise, n, cone, 32)
+    level, found = estimate_source_balls(image, albedo * noise, n, cone, 32, level=True)
     ratio = float(light_level(level) / light_level(ball))
     assert bool(found[0]) and 0.93 < ratio < 1.07, ratio
     shading, _ = estimate_source_balls(image, albedo * noise, n, cone, 32)
