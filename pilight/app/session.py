@@ -132,7 +132,8 @@ class PhotoSession:
 
 
 def _source_ball(pipe: PILightPipeline, d: DecompositionOutput) -> np.ndarray:
-    """The photo's own light as the relative mode estimates it (pilight.physics.source_light), 8-bit."""
+    """The photo's own light as the effective albedo's fit estimates it (pilight.physics.source_light; the
+    relative mode takes its level from a first-order fit), normalised to its maximum, 8-bit."""
     c = d.conditions
     balls, found = estimate_source_balls(c["image"], c["albedo"], c["normal"], c["mask"], BALL_SIZE, c["metallic"])
     if not bool(found[0]):

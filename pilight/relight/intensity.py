@@ -10,7 +10,11 @@ the input's own light, k = 1 keeping the photo's exposure. The model then uses
     ball_b = relative ball x level(estimated light of the input)
 
 with the input's light estimated from the input and its conditioning intrinsics
-(pilight.physics.source_light), the same estimate the effective albedo A_eff is made with. In the
+(pilight.physics.source_light): the level from a first-order fit, while the effective albedo A_eff
+uses the nine-term one (their levels differ where a photo shows a narrow cone of normals, so the photo
+relit under its own estimated light at k = 1 comes back scaled by their ratio; the photo API's
+``exposure: photo`` removes it, and on the test pairs the split won the relative tier,
+docs/pipeline/stage2.md). In the
 physics-first ratio form I_relit = I_a (A_eff D_b + S_b) / (A_eff D_a + S_a) the albedo's level then
 cancels on diffuse pixels: albedo x 2 halves the estimated light, doubles A_eff and halves ball_b.
 What does not cancel is the dielectric highlight: F0 = 0.04 whatever the albedo, so S_b follows the

@@ -162,3 +162,30 @@ def test_relative_intensity_takes_the_level_from_the_level_fit(tmp_path):
     by_shading_fit, _ = pf.source_balls(b["image_a"], intr, b["mask"], size)
     torch.testing.assert_close(balls["ball_b"], b["ball_b"] * light_level(by_level_fit))
     assert not torch.allclose(light_level(by_level_fit), light_level(by_shading_fit), rtol=1e-3)
+
+
+@pytest.mark.parametrize(
+    ("form", "intensity", "fits"),
+    [
+        ({}, "relative", [False, True]),  # effective albedo, estimated light: shading fit, then level fit
+        ({}, "absolute", [False]),  # no level is estimated
+        ({"source_light": "rendered"}, "relative", []),  # ball_a serves both
+        ({"albedo_source": "conditioning"}, "relative", [True]),  # no effective albedo: the level only
+        ({"albedo_source": "conditioning"}, "absolute", []),
+    ],
+)
+def test_each_form_estimates_the_fits_it_needs(tmp_path, monkeypatch, form, intensity, fits):
+    """Which fits of the input's light each form and intensity run (level=True: the level's fit)."""
+    calls = []
+    original = pf.source_balls
+
+    def recording(*args, level=False, **kw):
+        calls.append(level)
+        return original(*args, level=level, **kw)
+
+    monkeypatch.setattr(pf, "source_balls", recording)
+    task = tiny_relight_task(tmp_path, form={**TINY["form"], **form})
+    b = physics_pair()
+    intr = {k: b[k] for k in ("albedo", "normal", "roughness", "metallic")}
+    task._conditions(b, intr, "cpu", intensity)
+    assert calls == fits
