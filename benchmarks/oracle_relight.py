@@ -53,7 +53,7 @@ from pilight.data import schema
 from pilight.data.colour import tonemap01
 from pilight.data.shard_reader import eval_dataset, make_loader
 from pilight.diffusion.codec import cell_mean, cell_smooth
-from pilight.eval.light_following import ChangeR2
+from pilight.eval.light_following import ChangeR2, cross_light
 from pilight.eval.metrics import psnr_per_image, ssim_per_image
 from pilight.eval.scale_invariant import scaled_to
 from pilight.params import DOMAINS
@@ -169,6 +169,31 @@ def tier_forms(b: dict, c: dict, sources: tuple | None = None) -> dict[str, dict
     return out
 
 
+class RelitScores:
+    """change_r2 (full image and mask), PSNR and SSIM of relit images, tone-mapped as the evaluation does,
+    accumulated per key over cross-light batches (also used by benchmarks/source_light_level.py)."""
+
+    def __init__(self):
+        self.scores: dict = {}
+
+    def add(self, key, img: torch.Tensor, b: dict) -> None:
+        r = self.scores.setdefault(key, {"r2": ChangeR2(), "psnr": [], "ssim": []})
+        u, u_gt = tonemap01(img), tonemap01(b["image_b"])
+        r["r2"].update(u, u_gt, tonemap01(b["image_a"]), b["mask"])
+        r["psnr"].append(psnr_per_image(u, u_gt))
+        r["ssim"].append(ssim_per_image(u, u_gt))
+
+    def row(self, key) -> dict[str, float]:
+        r = self.scores[key]
+        r2 = r["r2"].compute()
+        return {
+            "change_r2_full": r2["full"],
+            "change_r2_mask": r2["mask"],
+            "psnr": float(torch.cat(r["psnr"]).mean()),
+            "ssim": float(torch.cat(r["ssim"]).mean()),
+        }
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--shards", type=Path, default=Path("data/shards"))
@@ -187,17 +212,15 @@ def main(argv: list[str] | None = None) -> int:
         settings |= {f"pred {d}": (preds, {"only": d}) for d in DOMAINS}
         settings["pred, albedo at GT level"] = (preds, {"at_gt_level": True})
         settings["pred albedo at GT level"] = (preds, {"only": "albedo", "at_gt_level": True})
-    scores: dict[str, dict[str, dict]] = {s: {} for s in settings}
+    scores = RelitScores()
+    names: dict[str, list[str]] = {s: [] for s in settings}
     pairs = 0
     for b in make_loader(eval_dataset(args.shards, args.split, "relight"), 8):
-        cross = torch.tensor(
-            [json.loads(a)["light"] != json.loads(c)["light"] for a, c in zip(b["meta_a"], b["meta_b"])]
-        )
-        if not cross.any():
+        b = cross_light(b)
+        if b is None:
             continue
-        b = {k: (v[cross] if torch.is_tensor(v) else [x for x, keep in zip(v, cross) if keep]) for k, v in b.items()}
-        pairs += int(cross.sum())
-        u_in, u_gt, mask = tonemap01(b["image_a"]), tonemap01(b["image_b"]), b["mask"]
+        pairs += b["image_a"].shape[0]
+        mask = b["mask"]
         for setting, (p, options) in settings.items():
             c = oracle_conditions(b, p, **options)
             if args.tiers:
@@ -208,25 +231,16 @@ def main(argv: list[str] | None = None) -> int:
                 }
             else:
                 forms = {"copy the input": b["image_a"].float()} | candidates(b, c)
-            forms = {k: torch.where(mask > 0.5, v, b["image_a"].float()) for k, v in forms.items()}
             for name, img in forms.items():
-                r = scores[setting].setdefault(name, {"r2": ChangeR2(), "psnr": [], "ssim": []})
-                u = tonemap01(img)
-                r["r2"].update(u, u_gt, u_in, mask)
-                r["psnr"].append(psnr_per_image(u, u_gt))
-                r["ssim"].append(ssim_per_image(u, u_gt))
+                scores.add((setting, name), torch.where(mask > 0.5, img, b["image_a"].float()), b)
+                if name not in names[setting]:
+                    names[setting].append(name)
     table = {}
-    for setting, rows in scores.items():
+    for setting, rows in names.items():
         print(f"\n{args.split}: {pairs} cross-light pairs, conditions {setting}")
         print(f"{'candidate':44s} {'r2 full':>8s} {'r2 mask':>8s} {'PSNR':>7s} {'SSIM':>6s}")
-        for name, r in rows.items():
-            r2 = r["r2"].compute()
-            row = {
-                "change_r2_full": r2["full"],
-                "change_r2_mask": r2["mask"],
-                "psnr": float(torch.cat(r["psnr"]).mean()),
-                "ssim": float(torch.cat(r["ssim"]).mean()),
-            }
+        for name in rows:
+            row = scores.row((setting, name))
             table.setdefault(setting, {})[name] = row
             print(
                 f"{name:44s} {row['change_r2_full']:8.3f} {row['change_r2_mask']:8.3f} {row['psnr']:7.2f} {row['ssim']:6.3f}"

@@ -31,11 +31,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.oracle_relight import tier_forms  # noqa: E402
-from pilight.data.colour import tonemap01
+from benchmarks.oracle_relight import RelitScores, tier_forms  # noqa: E402
 from pilight.data.shard_reader import eval_dataset, make_loader
-from pilight.eval.light_following import ChangeR2
-from pilight.eval.metrics import psnr_per_image, ssim_per_image
+from pilight.eval.light_following import cross_light
 from pilight.eval.scale_invariant import scaled_to
 from pilight.relight import physics_first as pf
 from pilight.relight.conditions import optional_predictions, oracle_conditions
@@ -76,40 +74,27 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     preds = optional_predictions(args.shards, args.pred, args.split, "source_light_level")
     settings = {"gt": None} | ({"pred": preds} if preds is not None else {})
-    scores: dict[tuple, dict] = {}
+    scores = RelitScores()
     pairs = 0
     for i, b in enumerate(make_loader(eval_dataset(args.shards, args.split, "relight"), 8)):
         if args.batches is not None and i >= args.batches:
             break
-        cross = torch.tensor(
-            [json.loads(a)["light"] != json.loads(c)["light"] for a, c in zip(b["meta_a"], b["meta_b"])]
-        )
-        if not cross.any():
+        b = cross_light(b)
+        if b is None:
             continue
-        b = {k: (v[cross] if torch.is_tensor(v) else [x for x, keep in zip(v, cross) if keep]) for k, v in b.items()}
-        pairs += int(cross.sum())
-        u_in, u_gt = tonemap01(b["image_a"]), tonemap01(b["image_b"])
+        pairs += b["image_a"].shape[0]
         for setting, p in settings.items():
             c = oracle_conditions(b, p)
             for name, (shading, level) in estimates(b, c).items():
                 for tier, img in anchor_images(b, c, shading, level).items():
-                    r = scores.setdefault((setting, tier, name), {"r2": ChangeR2(), "psnr": [], "ssim": []})
-                    u = tonemap01(img)
-                    r["r2"].update(u, u_gt, u_in, b["mask"])
-                    r["psnr"].append(psnr_per_image(u, u_gt))
-                    r["ssim"].append(ssim_per_image(u, u_gt))
+                    scores.add((setting, tier, name), img, b)
     table: dict = {}
     print(f"{args.split}: {pairs} cross-light pairs; the physics anchor (zero gains) with each fit of light a")
     print(f"{'conditions':10s} {'tier':16s} {'fit':18s} {'r2 mask':>8s} {'PSNR':>7s} {'SSIM':>6s}")
     for setting in settings:
         for tier in TIERS:
             for name in ("nine terms", "first order", "split (pipeline)", "rendered ball_a"):
-                r = scores[(setting, tier, name)]
-                row = {
-                    "change_r2_mask": r["r2"].compute()["mask"],
-                    "psnr": float(torch.cat(r["psnr"]).mean()),
-                    "ssim": float(torch.cat(r["ssim"]).mean()),
-                }
+                row = scores.row((setting, tier, name))
                 table.setdefault(setting, {}).setdefault(tier, {})[name] = row
                 print(
                     f"{setting:10s} {tier:16s} {name:18s} {row['change_r2_mask']:8.3f} {row['psnr']:7.2f} {row['ssim']:6.3f}"

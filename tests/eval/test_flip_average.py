@@ -4,17 +4,12 @@ equivariant gets symmetrised."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import torch
 import torch.nn.functional as F
 
-SPEC = importlib.util.spec_from_file_location(
-    "flip_average", Path(__file__).resolve().parents[2] / "benchmarks" / "flip_average.py"
-)
-flip_average = importlib.util.module_from_spec(SPEC)
-SPEC.loader.exec_module(flip_average)
+from fixtures.benchmark_scripts import load_benchmark
+
+flip_average = load_benchmark("flip_average")
 
 
 def central_dx(x: torch.Tensor) -> torch.Tensor:

@@ -3,18 +3,14 @@ turned by exactly that angle, and the camera's pitch is read from the render's p
 
 from __future__ import annotations
 
-import importlib.util
 import math
-from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 
-SPEC = importlib.util.spec_from_file_location(
-    "normal_frame", Path(__file__).resolve().parents[2] / "benchmarks" / "normal_frame.py"
-)
-normal_frame = importlib.util.module_from_spec(SPEC)
-SPEC.loader.exec_module(normal_frame)
+from fixtures.benchmark_scripts import load_benchmark
+
+normal_frame = load_benchmark("normal_frame")
 
 
 def test_a_floor_turned_toward_the_camera_is_found_and_undone():

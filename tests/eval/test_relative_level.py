@@ -3,18 +3,12 @@ exposure-matched copy's level r x Y(I_a) on the mask, and w = 1/2 the geometric 
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import torch
 
+from fixtures.benchmark_scripts import load_benchmark
 from pilight.relight.intensity import mean_luminance
 
-SPEC = importlib.util.spec_from_file_location(
-    "relative_level", Path(__file__).resolve().parents[2] / "benchmarks" / "relative_level.py"
-)
-relative_level = importlib.util.module_from_spec(SPEC)
-SPEC.loader.exec_module(relative_level)
+relative_level = load_benchmark("relative_level")
 
 
 def scene():

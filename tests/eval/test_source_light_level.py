@@ -3,18 +3,12 @@ first-order fit for the level, so only the relative tier can tell it from the ni
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import torch
 
+from fixtures.benchmark_scripts import load_benchmark
 from fixtures.relight_pairs import physics_pair
 
-SPEC = importlib.util.spec_from_file_location(
-    "source_light_level", Path(__file__).resolve().parents[2] / "benchmarks" / "source_light_level.py"
-)
-source_light_level = importlib.util.module_from_spec(SPEC)
-SPEC.loader.exec_module(source_light_level)
+source_light_level = load_benchmark("source_light_level")
 
 
 def test_the_split_reads_the_shading_from_nine_terms_and_the_level_from_first_order():

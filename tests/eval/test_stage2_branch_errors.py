@@ -4,20 +4,14 @@ is 1 for perfect gains and 0 for the target's own mean."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 import torch
 
+from fixtures.benchmark_scripts import load_benchmark
 from fixtures.relight_pairs import physics_pair
 from pilight.relight import physics_first as pf
 
-SPEC = importlib.util.spec_from_file_location(
-    "stage2_branch_errors", Path(__file__).resolve().parents[2] / "benchmarks" / "stage2_branch_errors.py"
-)
-branch_errors = importlib.util.module_from_spec(SPEC)
-SPEC.loader.exec_module(branch_errors)
+branch_errors = load_benchmark("stage2_branch_errors")
 
 
 def setup():
