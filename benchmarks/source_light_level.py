@@ -13,6 +13,9 @@ gains: effective albedo, cell-smoothed lookups, GGX specular) is formed with the
   first order        first-order SH with the level's ridge for both
   split (pipeline)   nine terms for the shading, first order for the level (pf.source_balls)
   rendered ball_a    the shards' own ball of light a for both (what no photo has)
+  split, true albedo the split with the ground-truth albedo in the fit and only there (the other
+                     maps, and the albedo the anchor uses elsewhere, are the conditions'): what a
+                     perfect stage-1 albedo would give the light estimate
 
 each scored in the three tiers of the evaluation (absolute: the target ball as rendered; relative:
 told r = level(ball_b) / level(ball_a) and scaled to the estimated level; scale-invariant: the
@@ -39,6 +42,7 @@ from pilight.relight import physics_first as pf
 from pilight.relight.conditions import optional_predictions, oracle_conditions
 
 TIERS = ("absolute", "relative", "scale_invariant")
+FITS = ("nine terms", "first order", "split (pipeline)", "rendered ball_a", "split, true albedo")
 
 
 def estimates(b: dict, c: dict) -> dict[str, tuple[tuple, tuple]]:
@@ -47,11 +51,15 @@ def estimates(b: dict, c: dict) -> dict[str, tuple[tuple, tuple]]:
     nine = pf.source_balls(I_a, c, mask, size)
     first = pf.source_balls(I_a, c, mask, size, level=True)
     rendered = (b["ball_a"], torch.ones(I_a.shape[0], dtype=torch.bool))
+    true_albedo = dict(c, albedo=b["albedo"])
+    nine_true = pf.source_balls(I_a, true_albedo, mask, size)
+    first_true = pf.source_balls(I_a, true_albedo, mask, size, level=True)
     return {
         "nine terms": (nine, nine),
         "first order": (first, first),
         "split (pipeline)": (nine, first),
         "rendered ball_a": (rendered, rendered),
+        "split, true albedo": (nine_true, first_true),
     }
 
 
@@ -90,14 +98,14 @@ def main(argv: list[str] | None = None) -> int:
                     scores.add((setting, tier, name), img, b)
     table: dict = {}
     print(f"{args.split}: {pairs} cross-light pairs; the physics anchor (zero gains) with each fit of light a")
-    print(f"{'conditions':10s} {'tier':16s} {'fit':18s} {'r2 mask':>8s} {'PSNR':>7s} {'SSIM':>6s}")
+    print(f"{'conditions':10s} {'tier':16s} {'fit':20s} {'r2 mask':>8s} {'PSNR':>7s} {'SSIM':>6s}")
     for setting in settings:
         for tier in TIERS:
-            for name in ("nine terms", "first order", "split (pipeline)", "rendered ball_a"):
+            for name in FITS:
                 row = scores.row((setting, tier, name))
                 table.setdefault(setting, {}).setdefault(tier, {})[name] = row
                 print(
-                    f"{setting:10s} {tier:16s} {name:18s} {row['change_r2_mask']:8.3f} {row['psnr']:7.2f} {row['ssim']:6.3f}"
+                    f"{setting:10s} {tier:16s} {name:20s} {row['change_r2_mask']:8.3f} {row['psnr']:7.2f} {row['ssim']:6.3f}"
                 )
     if args.json:
         args.json.write_text(json.dumps({"pairs": pairs, "split": args.split, "anchors": table}, indent=1) + "\n")
