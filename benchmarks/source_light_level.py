@@ -1,4 +1,4 @@
-"""Which fit of the input's light should set a relative light's level? The physics anchor, three ways.
+"""Which fit of the input's light should set a relative light's level, and what limits it? The physics anchor, five ways.
 
     python benchmarks/source_light_level.py [--shards data/shards] [--pred data/intrinsics_pred] [--split test]
                                             [--batches N] [--json FILE]
