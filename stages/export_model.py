@@ -8,6 +8,9 @@ together within the 40 MB git budget; they load back as float32), writes pipelin
 params (processing resolution, samplers) and MODEL_CARD.md: what the base saw, how it was trained,
 how long on what machine, and its figures on both test splits beside their baselines. The folder is
 written under a temporary name and renamed, so a killed export leaves the old base whole.
+
+A retrain of one stage: put the previous base's other stage in --models and name it with --keep-stage;
+the card keeps that stage's training line from the card now in --out, marked as kept.
 """
 
 from __future__ import annotations
@@ -28,6 +31,14 @@ def options(ap) -> None:
     ap.add_argument("--out", type=Path, default=Path("weights/pilight-base"))
     ap.add_argument("--metrics", type=Path, nargs="*", default=[], help="headline.json of each test split")
     ap.add_argument("--live", type=Path, default=None, help="dvclive folder of both training stages")
+    ap.add_argument(
+        "--keep-stage",
+        choices=["intrinsics", "relight"],
+        action="append",
+        default=[],
+        help="a stage not retrained: its weights in --models are the previous base's, and the card keeps its "
+        "training line from the card now in --out (its dvclive is not needed)",
+    )
 
 
 def _read(path: Path) -> dict:
@@ -35,6 +46,21 @@ def _read(path: Path) -> dict:
         return json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as exc:
         raise CommandFailure(f"{path}: unreadable ({exc})") from None
+
+
+KEPT_NOTE = " (not retrained since; kept from the previous card)"
+
+
+def _kept_line(card: Path, stage: str) -> str:
+    """The previous card's Training line of ``stage``, marked as kept."""
+    try:
+        lines = card.read_text(encoding="utf-8").splitlines()
+    except OSError as exc:
+        raise CommandFailure(f"--keep-stage {stage}: no previous card to keep its training line from ({exc})") from None
+    found = [line for line in lines if line.startswith(f"- **{stage}**:")]
+    if not found:
+        raise CommandFailure(f"--keep-stage {stage}: {card} has no '- **{stage}**:' training line")
+    return found[0] if found[0].endswith(KEPT_NOTE) else found[0] + KEPT_NOTE
 
 
 def body(args, base, render, intrinsics, relight) -> int:
@@ -47,9 +73,10 @@ def body(args, base, render, intrinsics, relight) -> int:
     with fails_on(PipelineError):
         pipe = PILightPipeline.from_pretrained(args.models, device="cpu", params=args.params)
     metrics = {p.stem: _read(p) for p in args.metrics}
+    kept = {stage: _kept_line(args.out / CARD, stage) for stage in args.keep_stage}
     training = {}
     if args.live is not None:
-        for stage in ("intrinsics", "relight"):
+        for stage in sorted({"intrinsics", "relight"} - set(kept)):
             d = args.live / stage
             training[stage] = _read(d / "metrics.json") | {"machine": _read(d / "machine.json")}
     tmp = args.out.with_name(f".{args.out.name}.tmp")
@@ -59,7 +86,9 @@ def body(args, base, render, intrinsics, relight) -> int:
     if size > MAX_BYTES:
         shutil.rmtree(tmp)
         raise CommandFailure(f"{args.out}: the weights take {size / 2**20:.1f} MB, over the 40 MB git budget")
-    card = model_card(base, render, intrinsics, relight, metrics=metrics, training=training, weights_bytes=size)
+    card = model_card(
+        base, render, intrinsics, relight, metrics=metrics, training=training, weights_bytes=size, kept=kept
+    )
     (tmp / CARD).write_text(card, encoding="utf-8")
     old = args.out.with_name(f".{args.out.name}.old")
     shutil.rmtree(old, ignore_errors=True)

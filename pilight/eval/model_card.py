@@ -54,8 +54,19 @@ def _scene_mix(sc, light) -> str:
 
 
 def model_card(
-    base, render, intrinsics, relight, *, metrics: dict[str, dict], training: dict[str, dict], weights_bytes: int
+    base,
+    render,
+    intrinsics,
+    relight,
+    *,
+    metrics: dict[str, dict],
+    training: dict[str, dict],
+    weights_bytes: int,
+    kept: dict[str, str] | None = None,
 ) -> str:
+    """The card's markdown. ``kept``: {stage: its Training line from the previous card}, for a stage this
+    export did not retrain (its weights are the previous base's, so is its training record)."""
+    kept = kept or {}
     sc, light, hdri = render.scene, render.light, render.hdri
     held = [h for h in hdri.names if h in hdri.test_holdout]
     keys = list(dict.fromkeys(k for m in metrics.values() for k in _flat(m)))  # the headline files' order
@@ -85,8 +96,10 @@ def model_card(
         "shapes and textures (base/heldout.yaml).",
         "",
         "## Training",
-        _training("intrinsics", intrinsics, training.get("intrinsics", {})),
-        _training("relight", relight, training.get("relight", {})),
+        *(
+            kept[stage] if stage in kept else _training(stage, p, training.get(stage, {}))
+            for stage, p in (("intrinsics", intrinsics), ("relight", relight))
+        ),
         "",
         "## Figures (held-out test splits)",
         "",

@@ -4,6 +4,8 @@ the export stage passes in (pilight/eval/model_card.py)."""
 
 from __future__ import annotations
 
+import pytest
+
 from fixtures.tiny_models import REPO
 from pilight.eval.model_card import model_card
 from pilight.params import load_section
@@ -37,3 +39,36 @@ def test_a_full_precision_stage_reads_fp32_not_accelerates_no():
     training = {"relight": {"steps": 2000, "mixed_precision": "no", "seconds": 733.0}}
     card = _card(REPO / "base" / "params.yaml", training)
     assert "fp32 precision" in card and "no precision" not in card
+
+
+def test_a_stage_not_retrained_keeps_its_previous_training_line():
+    kept = "- **intrinsics**: 6000 steps of 8, lr 0.0002 (cosine), bf16 precision; 0.58 h on a CPU (kept)"
+    training = {"relight": {"steps": 10000, "mixed_precision": "bf16", "seconds": 3600.0}}
+    sections = {
+        name: load_section(name, REPO / "base" / "params.yaml", check_paths=False)
+        for name in ("base", "render", "intrinsics", "relight")
+    }
+    card = model_card(**sections, metrics={}, training=training, weights_bytes=1, kept={"intrinsics": kept})
+    lines = card.splitlines()
+    assert kept in lines and sum(line.startswith("- **intrinsics**") for line in lines) == 1
+    assert "- **relight**: 10000 steps of 2" in card and "1.00 h" in card
+
+
+def test_the_export_takes_a_kept_line_from_the_previous_card(tmp_path):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("export_model", REPO / "stages" / "export_model.py")
+    export = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(export)
+    card = tmp_path / "MODEL_CARD.md"
+    card.write_text("## Training\n- **intrinsics**: 6000 steps of 8; 0.58 h\n- **relight**: 10000 steps\n")
+    line = export._kept_line(card, "intrinsics")
+    assert line == "- **intrinsics**: 6000 steps of 8; 0.58 h" + export.KEPT_NOTE
+    card.write_text(f"{line}\n")
+    assert export._kept_line(card, "intrinsics") == line  # kept twice, marked once
+    from pilight.failure import CommandFailure
+
+    with pytest.raises(CommandFailure, match="no '- \\*\\*relight\\*\\*:' training line"):
+        export._kept_line(card, "relight")
+    with pytest.raises(CommandFailure, match="no previous card"):
+        export._kept_line(tmp_path / "missing.md", "relight")
