@@ -106,9 +106,8 @@ def main(argv: list[str] | None = None) -> int:
         pairs += batch["image_a"].shape[0]
         batch = relative_pair(batch)
         intr = oracle_conditions(batch, preds)
-        maps, anc, _ = model._conditions(
-            batch, intr, "cpu", intensity="relative"
-        )  # relative balls, whatever the model's default
+        # the batch's balls are relative (relative_pair above), whatever the model's default intensity
+        maps, anc, _ = model._conditions(batch, intr, "cpu", intensity="relative")
         # the training targets, as the stage-2 task forms them (cell means of g_r, g_D, g_S)
         true_g = RelightTask._physics_first_targets(model, batch, anc, maps["image"], "cpu")
         B, z_cond = batch["image_a"].shape[0], encode_conditions(model.stack.codec, maps, model.layout, model.width)

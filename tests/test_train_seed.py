@@ -3,7 +3,6 @@ keep base.seed, so a training seed can vary on the same renders and shards (pili
 
 from __future__ import annotations
 
-import importlib.util
 import shutil
 from pathlib import Path
 from types import SimpleNamespace
@@ -11,6 +10,7 @@ from types import SimpleNamespace
 import pytest
 import yaml
 
+from fixtures.script_modules import load_stage
 from fixtures.stage_scripts import REPO, params_file
 from pilight.params import BaseParams, load_section
 from pilight.train.run_identity import run_identity
@@ -31,10 +31,7 @@ class Seen(Exception):
 
 
 def _stage(name: str):
-    spec = importlib.util.spec_from_file_location(f"_stage_{name}", REPO / "stages" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_stage(name)
 
 
 def _stub_task(seen: list | None, factor: int = 4):

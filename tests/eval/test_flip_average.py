@@ -7,7 +7,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from fixtures.benchmark_scripts import load_benchmark
+from fixtures.script_modules import load_benchmark
 
 flip_average = load_benchmark("flip_average")
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import pytest
 
+from fixtures.script_modules import load_stage
 from fixtures.tiny_models import REPO
 from pilight.eval.model_card import model_card
 from pilight.params import load_section
@@ -55,11 +56,7 @@ def test_a_stage_not_retrained_keeps_its_previous_training_line():
 
 
 def test_the_export_takes_a_kept_line_from_the_previous_card(tmp_path):
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("export_model", REPO / "stages" / "export_model.py")
-    export = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(export)
+    export = load_stage("export_model")
     card = tmp_path / "MODEL_CARD.md"
     card.write_text("## Training\n- **intrinsics**: 6000 steps of 8; 0.58 h\n- **relight**: 10000 steps\n")
     line = export._kept_line(card, "intrinsics")

@@ -8,7 +8,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from fixtures.benchmark_scripts import load_benchmark
+from fixtures.script_modules import load_benchmark
 
 normal_frame = load_benchmark("normal_frame")
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from fixtures.benchmark_scripts import load_benchmark
+from fixtures.script_modules import load_benchmark
 from pilight.relight.intensity import mean_luminance
 
 relative_level = load_benchmark("relative_level")

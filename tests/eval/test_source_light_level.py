@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import torch
 
-from fixtures.benchmark_scripts import load_benchmark
 from fixtures.relight_pairs import physics_pair
+from fixtures.script_modules import load_benchmark
 
 source_light_level = load_benchmark("source_light_level")
 

@@ -7,8 +7,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from fixtures.benchmark_scripts import load_benchmark
 from fixtures.relight_pairs import physics_pair
+from fixtures.script_modules import load_benchmark
 from pilight.relight import physics_first as pf
 
 branch_errors = load_benchmark("stage2_branch_errors")

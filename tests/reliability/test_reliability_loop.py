@@ -113,9 +113,8 @@ def test_damaged_newest_checkpoint_is_warned_about_and_the_previous_one_used(tmp
 def test_a_diverging_stage_stops_and_saves_no_model(tmp_path, capsys):
     """lr 1.0 (the allowed maximum) on the stage-1 script: the loss leaves its start by >100x within a few
     steps. Before: exit 0 and the diverged model saved to models/."""
-    import importlib.util
-
-    from fixtures.stage_scripts import REPO, params_file, tiny_shards, training_outputs
+    from fixtures.script_modules import load_stage
+    from fixtures.stage_scripts import params_file, tiny_shards, training_outputs
 
     shards = tiny_shards(tmp_path)
     train = {"steps": 30, "batch_size": 2, "checkpoint_every": 100, "image_every": 100, "log_every": 1}
@@ -127,10 +126,9 @@ def test_a_diverging_stage_stops_and_saves_no_model(tmp_path, capsys):
     stage = {"unet": unet, "codec": {"kind": "pixel", "factor": 4}, "train": train, "objective": "diffusion"}
     stage |= {"layout": "domains", "augment": {"flip": False, "crop": None}, "schedule": {"terminal_input": "noise"}}
     params = params_file(tmp_path, {"intrinsics": stage})
-    spec = importlib.util.spec_from_file_location("stage_train_intrinsics", REPO / "stages" / "train_intrinsics.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    rc = mod.main(["--params", str(params), "--shards", str(shards), *map(str, training_outputs(tmp_path))])
+    rc = load_stage("train_intrinsics").main(
+        ["--params", str(params), "--shards", str(shards), *map(str, training_outputs(tmp_path))]
+    )
     err = capsys.readouterr().err
     assert rc == 1 and "train_intrinsics: training diverged: the loss at step" in err, err
     assert "over 100x its start" in err and "Lower train.lr (now 1)" in err

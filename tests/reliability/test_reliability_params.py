@@ -5,7 +5,6 @@ rendered 144 class-default bundles, allocated 40 GB, or died in a modulo by zero
 
 from __future__ import annotations
 
-import importlib.util
 import typing
 from pathlib import Path
 
@@ -13,6 +12,7 @@ import pytest
 import yaml
 from pydantic import BaseModel
 
+from fixtures.script_modules import load_stage
 from pilight import params as P
 from pilight.params import ParamsError, load_section
 
@@ -34,10 +34,7 @@ def _params(tmp_path: Path, **edits) -> Path:
 
 
 def _stage_main(script: str):
-    spec = importlib.util.spec_from_file_location(f"stage_{script}", ROOT / "stages" / f"{script}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.main
+    return load_stage(script).main
 
 
 # --- empty, null and non-mapping sections ------------------------------------------------------------

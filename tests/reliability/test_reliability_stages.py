@@ -4,7 +4,6 @@ to stay fast; the scripts do nothing else around ``main``."""
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import tarfile
 from pathlib import Path
@@ -12,7 +11,8 @@ from pathlib import Path
 import pytest
 from accelerate.state import AcceleratorState
 
-from fixtures.stage_scripts import REPO, params_file, tiny_shards, training_outputs
+from fixtures.script_modules import load_stage
+from fixtures.stage_scripts import params_file, tiny_shards, training_outputs
 from pilight.data.shard_reader import read_index
 
 TINY = {
@@ -37,10 +37,7 @@ TINY = {
 
 
 def _main(script: str):
-    spec = importlib.util.spec_from_file_location(f"stage_{script}", REPO / "stages" / f"{script}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.main
+    return load_stage(script).main
 
 
 @pytest.fixture(autouse=True)

@@ -4,7 +4,6 @@ inside its outputs, at its start, and says so. Before, killed shard, infer and r
 
 from __future__ import annotations
 
-import importlib.util
 import shlex
 from pathlib import Path
 
@@ -12,16 +11,10 @@ import pytest
 import yaml
 
 from fixtures.fake_renders import write_fake_renders
+from fixtures.script_modules import load_stage
 from pilight import atomic
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def _stage_module(script: Path):
-    spec = importlib.util.spec_from_file_location(f"stage_{script.stem}", script)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def test_the_sweep_removes_what_killed_writers_leave_and_nothing_else(tmp_path):
@@ -71,7 +64,9 @@ def test_every_stage_sweeps_every_output_it_declares(dvc_file, name, monkeypatch
     wdir = (ROOT / dvc_file).parent / stage.get("wdir", ".")
     argv = shlex.split(stage["cmd"])
     script = next(a for a in argv if a.endswith(".py"))
-    mod = _stage_module((wdir / script).resolve())
+    path = (wdir / script).resolve()
+    assert path.parent == ROOT / "stages", path
+    mod = load_stage(path.stem)
     seen = {}
 
     def fake_run_stage(name, doc, argv, sections, options, body, outputs=None):
@@ -99,9 +94,7 @@ def test_a_killed_shard_runs_temporaries_are_removed_by_the_next_run(tmp_path, c
         (p / "train" / "train-000000.tar").write_bytes(b"partial")
     params = tmp_path / "params.yaml"
     params.write_text((ROOT / "params.yaml").read_text())
-    rc = _stage_module(ROOT / "stages" / "shard.py").main(
-        ["--params", str(params), "--renders", str(renders), "--out", str(out)]
-    )
+    rc = load_stage("shard").main(["--params", str(params), "--renders", str(renders), "--out", str(out)])
     err = capsys.readouterr().err
     # Before: both stayed in the data folder (and in `dvc status`' view of it) for good.
     assert rc == 0 and "shard: removed 2 temporary output(s) left by a killed run" in err, err
