@@ -10,7 +10,9 @@ how long on what machine, and its figures on both test splits beside their basel
 written under a temporary name and renamed, so a killed export leaves the old base whole.
 
 A retrain of one stage: put the previous base's other stage in --models and name it with --keep-stage;
-the card keeps that stage's training line from the card now in --out, marked as kept.
+the card keeps that stage's training line from the card now in --out, marked as kept. A stage tuned from
+its prior (base/dvc.yaml's tune_intrinsics): --tuned intrinsics=tune.yaml adds the tune's own line, read
+from that params file and from --live/intrinsics_tune.
 """
 
 from __future__ import annotations
@@ -39,6 +41,14 @@ def options(ap) -> None:
         help="a stage not retrained: its weights in --models are the previous base's, and the card keeps its "
         "training line from the card now in --out (its dvclive is not needed)",
     )
+    ap.add_argument(
+        "--tuned",
+        action="append",
+        default=[],
+        metavar="STAGE=PARAMS",
+        help="a stage whose weights in --models were tuned from its prior by the params file PARAMS; the card "
+        "adds the tune's line from PARAMS and --live/STAGE_tune",
+    )
 
 
 def _read(path: Path) -> dict:
@@ -52,15 +62,33 @@ KEPT_NOTE = " (not retrained since; kept from the previous card)"
 
 
 def _kept_line(card: Path, stage: str) -> str:
-    """The previous card's Training line of ``stage``, marked as kept."""
+    """The previous card's Training line of ``stage`` (and its tune's, if any), marked as kept."""
     try:
         lines = card.read_text(encoding="utf-8").splitlines()
     except OSError as exc:
         raise CommandFailure(f"--keep-stage {stage}: no previous card to keep its training line from ({exc})") from None
-    found = [line for line in lines if line.startswith(f"- **{stage}**:")]
-    if not found:
+    found = [line for line in lines if line.startswith((f"- **{stage}**:", f"- **{stage}, tuned**"))]
+    if not found or not found[0].startswith(f"- **{stage}**:"):
         raise CommandFailure(f"--keep-stage {stage}: {card} has no '- **{stage}**:' training line")
-    return found[0] if found[0].endswith(KEPT_NOTE) else found[0] + KEPT_NOTE
+    # a tune's line goes with its prior's: both made the kept weights
+    return "\n".join(line if line.endswith(KEPT_NOTE) else line + KEPT_NOTE for line in found)
+
+
+def _tunes(args) -> dict[str, tuple]:
+    """{stage: (the tune's params section, its run's log)} for each --tuned STAGE=PARAMS."""
+    from pilight.params import load_section
+
+    tunes = {}
+    for item in args.tuned:
+        stage, _, path = item.partition("=")
+        if stage not in ("intrinsics", "relight") or not path:
+            raise CommandFailure(f"--tuned {item!r}: expected intrinsics=PARAMS or relight=PARAMS")
+        if args.live is None:
+            raise CommandFailure(f"--tuned {item}: needs --live (the tune's log is --live/{stage}_tune)")
+        d = args.live / f"{stage}_tune"
+        log = _read(d / "metrics.json") | {"machine": _read(d / "machine.json")}
+        tunes[stage] = (load_section(stage, Path(path), check_paths=False), log)
+    return tunes
 
 
 def body(args, base, render, intrinsics, relight) -> int:
@@ -74,6 +102,7 @@ def body(args, base, render, intrinsics, relight) -> int:
         pipe = PILightPipeline.from_pretrained(args.models, device="cpu", params=args.params)
     metrics = {p.stem: _read(p) for p in args.metrics}
     kept = {stage: _kept_line(args.out / CARD, stage) for stage in args.keep_stage}
+    tuned = _tunes(args)
     training = {}
     if args.live is not None:
         for stage in sorted({"intrinsics", "relight"} - set(kept)):
@@ -87,7 +116,7 @@ def body(args, base, render, intrinsics, relight) -> int:
         shutil.rmtree(tmp)
         raise CommandFailure(f"{args.out}: the weights take {size / 2**20:.1f} MB, over the 40 MB git budget")
     card = model_card(
-        base, render, intrinsics, relight, metrics=metrics, training=training, weights_bytes=size, kept=kept
+        base, render, intrinsics, relight, metrics=metrics, training=training, weights_bytes=size, kept=kept, tuned=tuned
     )
     (tmp / CARD).write_text(card, encoding="utf-8")
     old = args.out.with_name(f".{args.out.name}.old")

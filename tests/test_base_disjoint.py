@@ -22,6 +22,17 @@ def _render(p: dict) -> RenderParams:
 def test_base_params_are_the_profiles_composed():
     assert compose(DEFAULT, read_params(REPO / "base/profile.yaml")) == BASE
     assert compose(BASE, read_params(REPO / "base/heldout_profile.yaml")) == HELDOUT
+    assert compose(BASE, read_params(REPO / "base/tune_profile.yaml")) == read_params(REPO / "base/tune.yaml")
+
+
+def test_the_tune_builds_the_priors_network_and_goes_on_from_it():
+    """base/dvc.yaml's tune_intrinsics loads prior/intrinsics (train_intrinsics' output) by `unet.init: base`,
+    which refuses another network; and it sees the prior's scenes, not new ones."""
+    tune = read_params(REPO / "base/tune.yaml")
+    assert tune["intrinsics"]["unet"] | {"init": "scratch", "path": None} == BASE["intrinsics"]["unet"]
+    assert (tune["intrinsics"]["unet"]["init"], tune["intrinsics"]["unet"]["path"]) == ("base", "prior")
+    assert mismatches("intrinsics", tune["intrinsics"], BASE["intrinsics"]) == []
+    assert tune["base"]["seed"] == BASE["base"]["seed"] and tune["render"] == BASE["render"]
 
 
 def test_seeds_differ_so_no_scene_is_shared():

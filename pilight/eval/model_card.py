@@ -42,6 +42,17 @@ def _training(stage: str, p, log: dict) -> str:
     )
 
 
+def _tuning(stage: str, tune, prior, log: dict) -> str:
+    """The line of a tune that went on from the stage's prior (base/tune_profile.yaml): its own run, and the
+    loss weights it changed, since those are what the tune is for."""
+    changed = [
+        f"{k} {v:g}" for k, v in tune.task_loss.model_dump().items() if v != getattr(prior.task_loss, k)
+    ] if stage == "intrinsics" else []
+    weights = f", loss weights {', '.join(changed)}" if changed else ""
+    line = _training(stage, tune, log).replace(f"- **{stage}**: ", f"- **{stage}, tuned** from it: ", 1)
+    return line.replace("; ", f"{weights}; ", 1)
+
+
 def _scene_mix(sc, light) -> str:
     """The kinds of scene it saw: what a photo must resemble for its stage 1 to read it (a portrait read
     as a floor before a wall when no close-ups were drawn; docs/base-model.md)."""
@@ -63,10 +74,12 @@ def model_card(
     training: dict[str, dict],
     weights_bytes: int,
     kept: dict[str, str] | None = None,
+    tuned: dict[str, tuple[Any, dict]] | None = None,
 ) -> str:
     """The card's markdown. ``kept``: {stage: its Training line from the previous card}, for a stage this
-    export did not retrain (its weights are the previous base's, so is its training record)."""
-    kept = kept or {}
+    export did not retrain (its weights are the previous base's, so is its training record). ``tuned``:
+    {stage: (the tune's params section, its run's log)}, for a stage whose weights went on from its prior."""
+    kept, tuned = kept or {}, tuned or {}
     sc, light, hdri = render.scene, render.light, render.hdri
     held = [h for h in hdri.names if h in hdri.test_holdout]
     keys = list(dict.fromkeys(k for m in metrics.values() for k in _flat(m)))  # the headline files' order
@@ -97,8 +110,12 @@ def model_card(
         "",
         "## Training",
         *(
-            kept[stage] if stage in kept else _training(stage, p, training.get(stage, {}))
+            line
             for stage, p in (("intrinsics", intrinsics), ("relight", relight))
+            for line in (
+                kept[stage] if stage in kept else _training(stage, p, training.get(stage, {})),
+                *([_tuning(stage, tuned[stage][0], p, tuned[stage][1])] if stage in tuned else []),
+            )
         ),
         "",
         "## Figures (held-out test splits)",

@@ -69,3 +69,44 @@ def test_the_export_takes_a_kept_line_from_the_previous_card(tmp_path):
         export._kept_line(card, "relight")
     with pytest.raises(CommandFailure, match="no previous card"):
         export._kept_line(tmp_path / "missing.md", "relight")
+
+
+def test_a_tuned_stage_has_its_prior_line_then_the_tunes_with_the_weights_it_changed(tmp_path):
+    sections = {
+        name: load_section(name, REPO / "base" / "params.yaml", check_paths=False)
+        for name in ("base", "render", "intrinsics", "relight")
+    }
+    tune = load_section("intrinsics", REPO / "base" / "tune.yaml", check_paths=False)
+    log = {"steps": 2000, "mixed_precision": "bf16", "seconds": 1800.0, "machine": {"cpu": "AMD EPYC", "cores": 2}}
+    card = model_card(
+        **sections,
+        metrics={},
+        training={"intrinsics": {"steps": 6000, "seconds": 3600.0}},
+        weights_bytes=1,
+        tuned={"intrinsics": (tune, log)},
+    )
+    lines = card.splitlines()
+    i = next(n for n, line in enumerate(lines) if line.startswith("- **intrinsics**: 6000 steps"))
+    assert lines[i + 1] == (
+        f"- **intrinsics, tuned** from it: 2000 steps of 8, lr {tune.train.lr} (cosine), bf16 precision, objective "
+        "task, layout joint, loss weights normal 5; 0.50 h on AMD EPYC, 2 cores"
+    )
+    # a later export that keeps stage 1 keeps both lines: both made its weights
+    export = load_stage("export_model")
+    (tmp_path / "MODEL_CARD.md").write_text(card)
+    kept = export._kept_line(tmp_path / "MODEL_CARD.md", "intrinsics").splitlines()
+    assert kept == [lines[i] + export.KEPT_NOTE, lines[i + 1] + export.KEPT_NOTE]
+
+
+def test_the_export_refuses_a_tune_it_cannot_describe(tmp_path):
+    import argparse
+
+    from pilight.failure import CommandFailure
+
+    export = load_stage("export_model")
+    with pytest.raises(CommandFailure, match="expected intrinsics=PARAMS"):
+        export._tunes(argparse.Namespace(tuned=["stage1=tune.yaml"], live=tmp_path))
+    with pytest.raises(CommandFailure, match="needs --live"):
+        export._tunes(argparse.Namespace(tuned=["intrinsics=tune.yaml"], live=None))
+    with pytest.raises(CommandFailure, match="intrinsics_tune/metrics.json: unreadable"):
+        export._tunes(argparse.Namespace(tuned=["intrinsics=tune.yaml"], live=tmp_path))
