@@ -116,7 +116,15 @@ def body(args, base, render, intrinsics, relight) -> int:
         shutil.rmtree(tmp)
         raise CommandFailure(f"{args.out}: the weights take {size / 2**20:.1f} MB, over the 40 MB git budget")
     card = model_card(
-        base, render, intrinsics, relight, metrics=metrics, training=training, weights_bytes=size, kept=kept, tuned=tuned
+        base,
+        render,
+        intrinsics,
+        relight,
+        metrics=metrics,
+        training=training,
+        weights_bytes=size,
+        kept=kept,
+        tuned=tuned,
     )
     (tmp / CARD).write_text(card, encoding="utf-8")
     old = args.out.with_name(f".{args.out.name}.old")

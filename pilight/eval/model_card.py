@@ -45,9 +45,11 @@ def _training(stage: str, p, log: dict) -> str:
 def _tuning(stage: str, tune, prior, log: dict) -> str:
     """The line of a tune that went on from the stage's prior (base/tune_profile.yaml): its own run, and the
     loss weights it changed, since those are what the tune is for."""
-    changed = [
-        f"{k} {v:g}" for k, v in tune.task_loss.model_dump().items() if v != getattr(prior.task_loss, k)
-    ] if stage == "intrinsics" else []
+    changed = (
+        [f"{k} {v:g}" for k, v in tune.task_loss.model_dump().items() if v != getattr(prior.task_loss, k)]
+        if stage == "intrinsics"
+        else []
+    )
     weights = f", loss weights {', '.join(changed)}" if changed else ""
     line = _training(stage, tune, log).replace(f"- **{stage}**: ", f"- **{stage}, tuned** from it: ", 1)
     return line.replace("; ", f"{weights}; ", 1)
