@@ -74,6 +74,11 @@ def _kept_line(card: Path, stage: str) -> str:
     return "\n".join(line if line.endswith(KEPT_NOTE) else line + KEPT_NOTE for line in found)
 
 
+def _run_log(live: Path) -> dict:
+    """A training run's dvclive summary with the machine it ran on (the card's Training line)."""
+    return _read(live / "metrics.json") | {"machine": _read(live / "machine.json")}
+
+
 def _tunes(args) -> dict[str, tuple]:
     """{stage: (the tune's params section, its run's log)} for each --tuned STAGE=PARAMS."""
     from pilight.params import load_section
@@ -85,8 +90,7 @@ def _tunes(args) -> dict[str, tuple]:
             raise CommandFailure(f"--tuned {item!r}: expected intrinsics=PARAMS or relight=PARAMS")
         if args.live is None:
             raise CommandFailure(f"--tuned {item}: needs --live (the tune's log is --live/{stage}_tune)")
-        d = args.live / f"{stage}_tune"
-        log = _read(d / "metrics.json") | {"machine": _read(d / "machine.json")}
+        log = _run_log(args.live / f"{stage}_tune")
         tunes[stage] = (load_section(stage, Path(path), check_paths=False), log)
     return tunes
 
@@ -106,8 +110,7 @@ def body(args, base, render, intrinsics, relight) -> int:
     training = {}
     if args.live is not None:
         for stage in sorted({"intrinsics", "relight"} - set(kept)):
-            d = args.live / stage
-            training[stage] = _read(d / "metrics.json") | {"machine": _read(d / "machine.json")}
+            training[stage] = _run_log(args.live / stage)
     tmp = args.out.with_name(f".{args.out.name}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     pipe.save_pretrained(tmp, dtype=torch.float16)

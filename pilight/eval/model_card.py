@@ -27,7 +27,8 @@ def _figures(metrics: dict[str, dict], keys: list[str]) -> list[str]:
     return rows
 
 
-def _training(stage: str, p, log: dict) -> str:
+def _training(stage: str, p, log: dict, label: str | None = None, also: str = "") -> str:
+    """A stage's Training line; ``label`` replaces the bold stage name, ``also`` ends the run's description."""
     m = log.get("machine", {})
     where = m.get("device") if m.get("device") not in (None, "cpu") else f"{m.get('cpu')}, {m.get('cores')} cores"
     seconds = log.get("seconds")
@@ -36,8 +37,8 @@ def _training(stage: str, p, log: dict) -> str:
     precision = log.get("mixed_precision", m.get("mixed_precision", "?"))
     precision = {"no": "fp32"}.get(precision, precision)  # accelerate calls full precision "no"
     return (
-        f"- **{stage}**: {log.get('steps', p.train.steps)} steps of {p.train.batch_size}, lr {p.train.lr} "
-        f"({p.train.lr_schedule}), {precision} precision{extra}; "
+        f"- {label or f'**{stage}**:'} {log.get('steps', p.train.steps)} steps of {p.train.batch_size}, "
+        f"lr {p.train.lr} ({p.train.lr_schedule}), {precision} precision{extra}{also}; "
         f"{took} on {where}"
     )
 
@@ -45,14 +46,12 @@ def _training(stage: str, p, log: dict) -> str:
 def _tuning(stage: str, tune, prior, log: dict) -> str:
     """The line of a tune that went on from the stage's prior (base/tune_profile.yaml): its own run, and the
     loss weights it changed, since those are what the tune is for."""
+    weights = getattr(tune, "task_loss", None)
     changed = (
-        [f"{k} {v:g}" for k, v in tune.task_loss.model_dump().items() if v != getattr(prior.task_loss, k)]
-        if stage == "intrinsics"
-        else []
+        [f"{k} {v:g}" for k, v in weights.model_dump().items() if v != getattr(prior.task_loss, k)] if weights else []
     )
-    weights = f", loss weights {', '.join(changed)}" if changed else ""
-    line = _training(stage, tune, log).replace(f"- **{stage}**: ", f"- **{stage}, tuned** from it: ", 1)
-    return line.replace("; ", f"{weights}; ", 1)
+    also = f", loss weights {', '.join(changed)}" if changed else ""
+    return _training(stage, tune, log, label=f"**{stage}, tuned** from it:", also=also)
 
 
 def _scene_mix(sc, light) -> str:
