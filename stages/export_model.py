@@ -12,7 +12,8 @@ written under a temporary name and renamed, so a killed export leaves the old ba
 A retrain of one stage: put the previous base's other stage in --models and name it with --keep-stage;
 the card keeps that stage's training line from the card now in --out, marked as kept. A stage tuned from
 its prior (base/dvc.yaml's tune_intrinsics): --tuned intrinsics=tune.yaml adds the tune's own line, read
-from that params file and from --live/intrinsics_tune.
+from that params file and from --live/intrinsics_tune. Both on one stage: the tune went on from the
+previous release's weights, whose line is kept and marked as its prior.
 """
 
 from __future__ import annotations
@@ -59,10 +60,13 @@ def _read(path: Path) -> dict:
 
 
 KEPT_NOTE = " (not retrained since; kept from the previous card)"
+# a kept stage that this export's --tuned went on from: the previous release's weights were its prior
+PRIOR_NOTE = " (the previous release's; kept from its card, and tuned since as the next line says)"
 
 
-def _kept_line(card: Path, stage: str) -> str:
-    """The previous card's Training line of ``stage`` (and its tune's, if any), marked as kept."""
+def _kept_line(card: Path, stage: str, tuned_since: bool = False) -> str:
+    """The previous card's Training line of ``stage`` (and its tune's, if any), marked as kept, or as the
+    prior of this export's tune when ``tuned_since``."""
     try:
         lines = card.read_text(encoding="utf-8").splitlines()
     except OSError as exc:
@@ -71,7 +75,8 @@ def _kept_line(card: Path, stage: str) -> str:
     if not found or not found[0].startswith(f"- **{stage}**:"):
         raise CommandFailure(f"--keep-stage {stage}: {card} has no '- **{stage}**:' training line")
     # a tune's line goes with its prior's: both made the kept weights
-    return "\n".join(line if line.endswith(KEPT_NOTE) else line + KEPT_NOTE for line in found)
+    note = PRIOR_NOTE if tuned_since else KEPT_NOTE
+    return "\n".join(line.removesuffix(KEPT_NOTE).removesuffix(PRIOR_NOTE) + note for line in found)
 
 
 def _run_log(live: Path) -> dict:
@@ -105,8 +110,8 @@ def body(args, base, render, intrinsics, relight) -> int:
     with fails_on(PipelineError):
         pipe = PILightPipeline.from_pretrained(args.models, device="cpu", params=args.params)
     metrics = {p.stem: _read(p) for p in args.metrics}
-    kept = {stage: _kept_line(args.out / CARD, stage) for stage in args.keep_stage}
     tuned = _tunes(args)
+    kept = {stage: _kept_line(args.out / CARD, stage, tuned_since=stage in tuned) for stage in args.keep_stage}
     training = {}
     if args.live is not None:
         for stage in sorted({"intrinsics", "relight"} - set(kept)):

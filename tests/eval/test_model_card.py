@@ -98,6 +98,17 @@ def test_a_tuned_stage_has_its_prior_line_then_the_tunes_with_the_weights_it_cha
     assert kept == [lines[i] + export.KEPT_NOTE, lines[i + 1] + export.KEPT_NOTE]
 
 
+def test_a_tune_from_the_previous_release_marks_its_kept_line_as_the_prior(tmp_path):
+    export = load_stage("export_model")
+    card = tmp_path / "MODEL_CARD.md"
+    prior = "- **intrinsics**: 6000 steps of 8; 0.58 h"
+    card.write_text(f"## Training\n{prior}{export.KEPT_NOTE}\n- **relight**: 10000 steps\n")
+    line = export._kept_line(card, "intrinsics", tuned_since=True)
+    assert line == prior + export.PRIOR_NOTE  # one note, the prior's, not "not retrained since"
+    card.write_text(f"{line}\n")
+    assert export._kept_line(card, "intrinsics") == prior + export.KEPT_NOTE
+
+
 def test_the_export_refuses_a_tune_it_cannot_describe(tmp_path):
     import argparse
 
