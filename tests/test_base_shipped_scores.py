@@ -1,0 +1,49 @@
+"""base/shipped scores the shipped weights on the base's two test splits without the base's training data: its
+params are the splits' own with fewer training scenes, so its test scenes must be exactly the base's, and it
+is a DVC project of its own that neither the root's nor base/'s `dvc repro` collects."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from pilight.params import RenderParams, read_params
+from pilight.profiles import compose
+from pilight.render.spec import scene_spec
+
+REPO = Path(__file__).resolve().parents[1]
+SHIPPED = REPO / "base" / "shipped"
+# each scoring split: (its params here, the params of the split it must reproduce)
+SPLITS = {"test": "base/params.yaml", "heldout": "base/heldout.yaml"}
+
+
+@pytest.mark.parametrize("split", SPLITS)
+def test_the_scoring_params_are_the_profile_composed_on_the_splits_own(split):
+    overlay = read_params(SHIPPED / "scoring_profile.yaml")
+    assert compose(read_params(REPO / SPLITS[split]), overlay) == read_params(SHIPPED / f"{split}.yaml")
+
+
+@pytest.mark.parametrize("split", SPLITS)
+def test_its_test_scenes_are_the_splits_own(split):
+    mine, theirs = (read_params(p) for p in (SHIPPED / f"{split}.yaml", REPO / SPLITS[split]))
+    assert mine["base"]["seed"] == theirs["base"]["seed"]
+    r_mine, r_theirs = (RenderParams.model_validate(p["render"]) for p in (mine, theirs))
+    assert r_mine.scenes.test == r_theirs.scenes.test > 0
+    seed = mine["base"]["seed"]
+    for i in range(r_mine.scenes.test):
+        assert scene_spec(r_mine, seed, "test", i) == scene_spec(r_theirs, seed, "test", i), f"test scene {i}"
+
+
+def test_it_scores_the_shipped_weights_and_no_dvc_repro_elsewhere_collects_it():
+    from dvc.repo import Repo
+
+    with Repo(str(SHIPPED)) as repo:
+        stages = list(repo.index.stages)
+    deps = {str(d.def_path) for s in stages for d in s.deps}
+    assert {"../../weights/pilight-base/intrinsics", "../../weights/pilight-base/relight"} <= deps
+    assert {s.name for s in stages} >= {"evaluate@test", "evaluate@heldout"}
+    for project in (REPO, REPO / "base"):
+        with Repo(str(project)) as repo:
+            paths = {stage.path for stage in repo.index.stages}
+        assert paths and all(not p.startswith(str(SHIPPED)) for p in paths), (project, paths)
