@@ -40,7 +40,8 @@ def options(ap) -> None:
         action="append",
         default=[],
         help="a stage not retrained: its weights in --models are the previous base's, and the card keeps its "
-        "training line from the card now in --out (its dvclive is not needed)",
+        "training line from the card now in --out (its dvclive is not needed); with --tuned on the same stage, "
+        "--models holds the tune's weights and the kept line is marked as the tune's prior",
     )
     ap.add_argument(
         "--tuned",

@@ -47,3 +47,31 @@ def test_it_scores_the_shipped_weights_and_no_dvc_repro_elsewhere_collects_it():
         with Repo(str(project)) as repo:
             paths = {stage.path for stage in repo.index.stages}
         assert paths and all(not p.startswith(str(SHIPPED)) for p in paths), (project, paths)
+
+
+def _stages(dvc_yaml: Path) -> dict:
+    import yaml
+
+    return yaml.safe_load(dvc_yaml.read_text(encoding="utf-8"))["stages"]
+
+
+def _keys(params: list) -> set[str]:
+    """dvc.yaml params entries (a key, or {file: [keys]}) -> the keys."""
+    return {k for p in params for k in ([p] if isinstance(p, str) else next(iter(p.values())))}
+
+
+def _covered(path: str, by: set[str]) -> bool:
+    return any(path == c or path.startswith(c + "/") for c in by)
+
+
+@pytest.mark.parametrize("stage", ["render", "shard", "infer_intrinsics", "relight", "evaluate"])
+def test_each_stage_reruns_on_what_the_roots_same_stage_reruns_on(stage):
+    """The weights are fixed in git here, so a change to the code or a params key that the root's stage
+    depends on must rerun this one too (the models and their shape-giving keys above all)."""
+    root, mine = _stages(REPO / "dvc.yaml")[stage], _stages(SHIPPED / "dvc.yaml")[stage]["do"]
+    code = [d for d in root["deps"] if d.startswith(("stages/", "pilight/"))]
+    deps = {d.removeprefix("../../") for d in mine["deps"]}
+    assert code and all(_covered(d, deps) for d in code), [d for d in code if not _covered(d, deps)]
+    covered = _keys(mine["params"])
+    for key in _keys(root.get("params", [])):
+        assert any(key == c or key.startswith(c + ".") for c in covered), f"{stage}: {key}"

@@ -45,7 +45,8 @@ def _training(stage: str, p, log: dict, label: str | None = None, also: str = ""
 
 def _tuning(stage: str, tune, prior, log: dict) -> str:
     """The line of a tune that went on from the stage's prior (base/tune_profile.yaml): its own run, and the
-    loss weights it changed, since those are what the tune is for."""
+    loss weights it changed, since those are what the tune is for. ``prior`` is the recipe's prior (the
+    export's --params): a tune of a release that was itself tuned still lists the weights against that."""
     weights = getattr(tune, "task_loss", None)
     changed = (
         [f"{k} {v:g}" for k, v in weights.model_dump().items() if v != getattr(prior.task_loss, k)] if weights else []
