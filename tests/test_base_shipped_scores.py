@@ -60,8 +60,10 @@ def _keys(params: list) -> set[str]:
     return {k for p in params for k in ([p] if isinstance(p, str) else next(iter(p.values())))}
 
 
-def _covered(path: str, by: set[str]) -> bool:
-    return any(path == c or path.startswith(c + "/") for c in by)
+def _covered(name: str, by: set[str], sep: str) -> bool:
+    """``name`` is one of ``by`` or lies under one: a file in a declared folder (sep "/"), a key in a
+    declared section (sep ".")."""
+    return any(name == c or name.startswith(c + sep) for c in by)
 
 
 @pytest.mark.parametrize("stage", ["render", "shard", "infer_intrinsics", "relight", "evaluate"])
@@ -71,7 +73,7 @@ def test_each_stage_reruns_on_what_the_roots_same_stage_reruns_on(stage):
     root, mine = _stages(REPO / "dvc.yaml")[stage], _stages(SHIPPED / "dvc.yaml")[stage]["do"]
     code = [d for d in root["deps"] if d.startswith(("stages/", "pilight/"))]
     deps = {d.removeprefix("../../") for d in mine["deps"]}
-    assert code and all(_covered(d, deps) for d in code), [d for d in code if not _covered(d, deps)]
-    covered = _keys(mine["params"])
+    assert code and all(_covered(d, deps, "/") for d in code), [d for d in code if not _covered(d, deps, "/")]
+    keys = _keys(mine["params"])
     for key in _keys(root.get("params", [])):
-        assert any(key == c or key.startswith(c + ".") for c in covered), f"{stage}: {key}"
+        assert _covered(key, keys, "."), f"{stage}: {key}"
