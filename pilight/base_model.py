@@ -40,6 +40,14 @@ MUST_MATCH: dict[str, tuple[str, ...]] = {
 }
 
 
+# (key, the base's value, the params' value) -> the parameters the params' model adds, which start at values
+# that make it compute what the base computes: ball tokens extend the learned embedding with a projection
+# that starts at zero (pilight.diffusion.light_tokens).
+EXTENSIONS: dict[tuple[str, str, str], tuple[str, ...]] = {
+    ("conditioning.kind", "learned", "ball_tokens"): ("conditioning.proj.",),
+}
+
+
 class BaseModelError(ValueError):
     """The shipped base is missing, damaged, or does not fit the params."""
 
@@ -71,8 +79,18 @@ def mismatches(stage: str, wanted: dict, saved: dict) -> list[str]:
     return [
         f"{stage}.{k}: the base has {_get(saved, k)!r}, the params ask for {_get(wanted, k)!r}"
         for k in MUST_MATCH[stage]
-        if _get(saved, k) != _get(wanted, k)
+        if _get(saved, k) != _get(wanted, k) and (k, _get(saved, k), _get(wanted, k)) not in EXTENSIONS
     ]
+
+
+def extended_parts(wanted: dict, saved: dict) -> tuple[str, ...]:
+    """The parameter prefixes the params' model adds to the base's (EXTENSIONS), to start from their initial values."""
+    return tuple(
+        prefix
+        for (k, was, now), prefixes in EXTENSIONS.items()
+        if _get(_flat(saved), k) == was and _get(_flat(wanted), k) == now
+        for prefix in prefixes
+    )
 
 
 def init_from_base(stack, p, stage: str) -> Path:
@@ -99,8 +117,11 @@ def init_from_base(stack, p, stage: str) -> Path:
             + "\n  ".join(wrong)
             + "\nset these keys as the base has them, or use unet.init: scratch"
         )
+    new = extended_parts(p.model_dump(mode="json"), saved)
+    if new:
+        print(f"{stage}: the base's weights, with {', '.join(new)} new (they start at zero: the base's function)")
     try:
-        load_model(stack, folder)
+        load_model(stack, folder, new_parts=new)
     except ModelError as exc:
         raise BaseModelError(f"{stage}.unet.init is 'base': {exc}") from None
     return folder

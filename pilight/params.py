@@ -576,8 +576,10 @@ class UNetParams(_Section):
 
 
 class ConditioningParams(_Section):
-    kind: Literal["learned", "clip"] = Field(
-        "learned", description="clip = CLIP image encoder (paper); learned = a named learned embedding"
+    kind: Literal["learned", "clip", "ball_tokens"] = Field(
+        "learned",
+        description="clip = CLIP image encoder (paper); learned = a named learned embedding; ball_tokens = the "
+        "target ball as cross-attention tokens (ours, stage 2 only: pilight.diffusion.light_tokens)",
     )
     clip_path: str | None = None
 
@@ -737,6 +739,11 @@ class IntrinsicsParams(ModelParams):
             raise ValueError(
                 "intrinsics.layout 'joint' predicts all maps from one UNet output, which a pretrained SD2/GeoWizard "
                 "UNet (4 output channels) does not have; use layout: domains with unet.init: pretrained"
+            )
+        if self.conditioning.kind == "ball_tokens":
+            raise ValueError(
+                "intrinsics.conditioning.kind 'ball_tokens' reads the target light's ball, which stage 1 does not "
+                "have; use learned or clip"
             )
         step = self.codec.factor * 2 ** (len(self.unet.block_out_channels) - 1)
         if self.augment.crop is not None and self.augment.crop % step:

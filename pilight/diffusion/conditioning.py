@@ -83,7 +83,8 @@ class LearnedEmbedding(nn.Module):
 
 
 def make_conditioning(kind: str, path: str | None = None, dim: int | None = None) -> nn.Module:
-    """``kind`` = "clip" (ClipImageEmbedding(path)) or "learned" (LearnedEmbedding(dim))."""
+    """``kind`` = "clip" (ClipImageEmbedding(path)), "learned" (LearnedEmbedding(dim)) or "ball_tokens"
+    (pilight.diffusion.light_tokens.BallTokens(dim): stage 2's target light as tokens)."""
     if kind == "clip":
         if not path:
             raise ValueError(
@@ -94,7 +95,13 @@ def make_conditioning(kind: str, path: str | None = None, dim: int | None = None
         if dim is None:
             raise ValueError("conditioning kind 'learned' needs dim (the UNet's cross_attention_dim)")
         return LearnedEmbedding(dim)
-    raise ValueError(f"unknown conditioning kind {kind!r}; expected 'clip' or 'learned'")
+    if kind == "ball_tokens":
+        if dim is None:
+            raise ValueError("conditioning kind 'ball_tokens' needs dim (the UNet's cross_attention_dim)")
+        from pilight.diffusion.light_tokens import BallTokens
+
+        return BallTokens(dim)
+    raise ValueError(f"unknown conditioning kind {kind!r}; expected 'clip', 'learned' or 'ball_tokens'")
 
 
 def null_like(embeds: torch.Tensor) -> torch.Tensor:

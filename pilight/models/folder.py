@@ -133,11 +133,18 @@ def verify_model_folder(model_dir: Path, *, trust_unverified: bool = False) -> b
 
 
 def load_model(
-    stack: DiffusionStack, model_dir: Path, *, trust_unverified: bool = False, verified: bool = False
+    stack: DiffusionStack,
+    model_dir: Path,
+    *,
+    trust_unverified: bool = False,
+    verified: bool = False,
+    new_parts: tuple[str, ...] = (),
 ) -> None:
     """Load trained weights into ``stack``; every way the folder can be wrong is a ModelError naming the
     file. The manifest is required (``verify_model_folder``) unless ``trust_unverified``; ``verified``:
-    the caller has just checked it (``pilight.pipeline.load_stage`` does before it reads config.json)."""
+    the caller has just checked it (``pilight.pipeline.load_stage`` does before it reads config.json).
+    ``new_parts``: name prefixes of parameters the folder may lack because the stack extends its model
+    (they keep their initial values; pilight.base_model.init_from_base)."""
     path = Path(model_dir) / MODEL_FILE
     if not verified:
         verify_model_folder(model_dir, trust_unverified=trust_unverified)
@@ -155,7 +162,7 @@ def load_model(
     except RuntimeError as exc:  # shapes differ: the params build another architecture than the one saved
         first = str(exc).strip().splitlines()[1:2] or [str(exc)]
         raise ModelError(f"{path}: does not match the params' model ({first[0].strip()})") from None
-    missing = [k for k in missing if k in trainable_state(stack.model)]
+    missing = [k for k in missing if k in trainable_state(stack.model) and not (new_parts and k.startswith(new_parts))]
     if missing or unexpected:
         raise ModelError(
             f"{path}: does not match the params' model (missing {missing[:3]}, unexpected {unexpected[:3]})"

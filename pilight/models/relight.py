@@ -97,6 +97,13 @@ class RelightModel:
         """Pixels per side of one physics-first output value: the codec cell with form.resolution cell, else 1."""
         return self.stack.codec.factor if self.form.resolution == "cell" else 1
 
+    def attention_images(self, maps: dict[str, torch.Tensor]) -> torch.Tensor:
+        """What the cross-attention conditioning reads: the target ball (level-divided where the form has it)
+        for `conditioning.kind: ball_tokens` (pilight.diffusion.light_tokens), else the input image."""
+        if self.p.conditioning.kind == "ball_tokens":
+            return maps["ball_n"] if "ball_n" in maps else maps["ball"]
+        return maps["image"]
+
     @in_full_precision  # data, not the network: light fits and anchors in fp32 under bf16 (physics.precision)
     def _conditions(
         self, batch: dict, intr: dict[str, torch.Tensor], dev, intensity: str | None = None
@@ -187,7 +194,7 @@ class RelightModel:
             return {k: v.clamp(0, schema.HDR_MAX) for k, v in out.items()}
         z_cond = encode_conditions(s.codec, maps, self.layout, self.width)
         ids = torch.arange(V, device=dev).repeat(B)
-        z0 = s.sample(z_cond, ids, maps["image"], V, sp, generator)
+        z0 = s.sample(z_cond, ids, self.attention_images(maps), V, sp, generator)
         if anc is not None:
             out = self._physics_first_outputs(
                 s.codec.decode(z0).float().unflatten(0, (B, V)), anc, maps["image"], batch["mask"].to(dev)

@@ -184,7 +184,7 @@ class RelightTask(RelightModel):
         x_t = s.scheduler.add_noise(z0, noise, tv)
         z_cond = z_cond * (~drop).repeat_interleave(V).to(z_cond.dtype)[:, None, None, None]
         ids = torch.arange(V, device=dev).repeat(B)
-        v = model(x_t, z_cond, tv, ids, condition_images=maps["image"], drop=drop).float()
+        v = model(x_t, z_cond, tv, ids, condition_images=self.attention_images(maps), drop=drop).float()
         alphas = s.alphas_cumprod(dev)
         l_v = objective.vpred_loss(v, s.scheduler.get_velocity(z0, noise, tv))
         logs = {
