@@ -10,6 +10,9 @@ a relit image repeats its input, so "copy the input" already scores well on them
       change_r2 = 1 - sum (dp - dt)^2 / sum dt^2
 
   Copying scores exactly 0, the ground truth 1; a prediction that moves the wrong way is negative.
+  Pooled, a pair weighs by how much it changes, so one pair can decide it (a dark close-up once
+  moved a base split's figure by 0.03 of 0.04); ``mask_pair_median`` is the median over pairs of each
+  pair's own change_r2 on the mask: the typical pair, beside the pooled figure.
 * ``direction``: probe images relit under an analytic light from camera-left and camera-right
   (``PROBE_AZIMUTH_DEG``, ``PROBE_ELEVATION_DEG``); the share whose left/right luminance asymmetry
   (``lr_asymmetry``, ground-truth normals, mask) is larger under the right light. Chance is 0.5.
@@ -59,6 +62,7 @@ class ChangeR2:
     def __init__(self):
         self.err = {"full": 0.0, "mask": 0.0}
         self.tot = {"full": 0.0, "mask": 0.0}
+        self.pairs: list[float] = []  # each pair's change_r2 on the mask (pairs whose mask changes at all)
 
     def update(self, pred_u: torch.Tensor, target_u: torch.Tensor, input_u: torch.Tensor, mask: torch.Tensor) -> None:
         """Display values in [0, 1], (B, 3, H, W); mask (B, 1, H, W)."""
@@ -67,9 +71,14 @@ class ChangeR2:
         for name, sel in (("full", torch.ones_like(m)), ("mask", m)):
             self.err[name] += float(((dp - dt) ** 2 * sel).sum())
             self.tot[name] += float((dt**2 * sel).sum())
+        err, tot = (((x**2) * m).flatten(1).sum(1) for x in (dp - dt, dt))
+        self.pairs += [1.0 - float(e / t) for e, t in zip(err, tot) if t > 0]
 
     def compute(self) -> dict[str, float | None]:
-        return {k: (1.0 - self.err[k] / self.tot[k]) if self.tot[k] > 0 else None for k in self.err}
+        out = {k: (1.0 - self.err[k] / self.tot[k]) if self.tot[k] > 0 else None for k in self.err}
+        # the lower median of an even count: a value some pair scored, as torch.median gives
+        out["mask_pair_median"] = float(torch.tensor(self.pairs).median()) if self.pairs else None
+        return out
 
 
 def sides_visible(normal: torch.Tensor, mask: torch.Tensor, share: float = PROBE_SIDE_SHARE) -> torch.Tensor:

@@ -275,6 +275,7 @@ COLUMNS = (  # (figure, column heading); LPIPS columns join when a figure has th
     ("ssim", "SSIM ↑"),
     ("change_r2_full", "change_r2 full ↑"),
     ("change_r2_mask", "change_r2 mask ↑"),
+    ("change_r2_mask_pair_median", "change_r2 mask, pair median ↑"),
     ("level_sd", "level sd ↓"),
     ("reconstruction_psnr", "reconstr. PSNR ↑"),
     ("reconstruction_ssim", "reconstr. SSIM ↑"),

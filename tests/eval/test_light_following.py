@@ -52,6 +52,25 @@ def test_change_r2_is_zero_for_copying_one_for_the_truth_and_negative_for_the_wr
     assert half.compute()["full"] == pytest.approx(0.75)  # half the change: 1 - 1/4
 
 
+def test_the_pair_median_is_the_typical_pair_where_one_pair_decides_the_pooled_figure():
+    """Three pairs relit perfectly but for one whose true change is large and predicted the wrong way:
+    pooled, that pair sinks the figure; the median over pairs is a perfect pair's 1.0. A pair whose
+    mask does not change is left out of the median (its own change_r2 is undefined)."""
+    g = torch.Generator().manual_seed(1)
+    u_in = torch.rand(5, 3, 8, 8, generator=g) * 0.5
+    u_gt = u_in + torch.tensor([0.01, 0.01, 0.01, 0.4, 0.0])[:, None, None, None]
+    pred = u_gt.clone()
+    pred[3] = u_in[3] - 0.4  # the big change, the wrong way: that pair's change_r2 is 1 - 4 = -3
+    r = ChangeR2()
+    r.update(pred[:2], u_gt[:2], u_in[:2], torch.ones(2, 1, 8, 8))
+    r.update(pred[2:], u_gt[2:], u_in[2:], torch.ones(3, 1, 8, 8))
+    got = r.compute()
+    assert got["mask"] == pytest.approx(1 - 4 * 0.16 / (3 * 1e-4 + 0.16), abs=1e-6)
+    assert got["mask_pair_median"] == pytest.approx(1.0)
+    assert len(r.pairs) == 4 and min(r.pairs) == pytest.approx(-3.0)
+    assert ChangeR2().compute()["mask_pair_median"] is None
+
+
 def test_directions_follow_the_camera_convention_and_light_the_facing_side():
     np.testing.assert_allclose(direction_from_angles(0, 0), [0, 0, 1], atol=1e-7)
     np.testing.assert_allclose(direction_from_angles(90, 0), [1, 0, 0], atol=1e-7)
