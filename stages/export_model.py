@@ -11,8 +11,8 @@ written under a temporary name and renamed, so a killed export leaves the old ba
 
 A retrain of one stage: put the previous base's other stage in --models and name it with --keep-stage;
 the card keeps that stage's training line from the card now in --out, marked as kept. A stage tuned from
-its prior (base/dvc.yaml's tune_intrinsics): --tuned intrinsics=tune.yaml adds the tune's own line, read
-from that params file and from --live/intrinsics_tune. Both on one stage: the tune went on from the
+its prior (for example base/tune.yaml, run by hand): --tuned intrinsics=tune.yaml adds the tune's own line,
+read from that params file and from --live/intrinsics_tune. Both on one stage: the tune went on from the
 previous release's weights, whose line is kept and marked as its prior.
 """
 

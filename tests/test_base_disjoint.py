@@ -25,12 +25,12 @@ def test_base_params_are_the_profiles_composed():
     assert compose(BASE, read_params(REPO / "base/tune_profile.yaml")) == read_params(REPO / "base/tune.yaml")
 
 
-def test_the_tune_builds_the_priors_network_and_goes_on_from_it():
-    """base/dvc.yaml's tune_intrinsics loads prior/intrinsics (train_intrinsics' output) by `unet.init: base`,
-    which refuses another network; and it sees the prior's scenes, not new ones."""
+def test_the_tune_builds_the_recipes_network_and_goes_on_from_it():
+    """base/tune.yaml (a measured tune, run by hand) loads the recipe's models/intrinsics by `unet.init: base`,
+    which refuses another network; and it sees the base's scenes, not new ones."""
     tune = read_params(REPO / "base/tune.yaml")
     assert tune["intrinsics"]["unet"] | {"init": "scratch", "path": None} == BASE["intrinsics"]["unet"]
-    assert (tune["intrinsics"]["unet"]["init"], tune["intrinsics"]["unet"]["path"]) == ("base", "prior")
+    assert (tune["intrinsics"]["unet"]["init"], tune["intrinsics"]["unet"]["path"]) == ("base", "models")
     assert mismatches("intrinsics", tune["intrinsics"], BASE["intrinsics"]) == []
     assert tune["base"]["seed"] == BASE["base"]["seed"] and tune["render"] == BASE["render"]
 
@@ -73,3 +73,15 @@ def test_the_defaults_dvc_repro_never_collects_the_base_pipeline():
     with Repo(str(REPO)) as root:
         paths = {stage.path for stage in root.index.stages}
     assert paths and all(not p.startswith(str(REPO / "base")) for p in paths), paths
+
+
+def test_the_recipe_is_what_made_the_shipped_base():
+    """base/dvc.yaml states how weights/pilight-base was made: its stages are the ones base/dvc.lock recorded,
+    with the same commands (a stage the shipped weights have not been through does not belong in it)."""
+    import yaml
+
+    stages = yaml.safe_load((REPO / "base/dvc.yaml").read_text(encoding="utf-8"))["stages"]
+    locked = yaml.safe_load((REPO / "base/dvc.lock").read_text(encoding="utf-8"))["stages"]
+    assert set(stages) == set(locked)
+    squash = lambda cmd: " ".join(cmd.split())
+    assert {k: squash(v["cmd"]) for k, v in stages.items()} == {k: squash(v["cmd"]) for k, v in locked.items()}
