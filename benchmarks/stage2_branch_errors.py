@@ -31,9 +31,21 @@ SOURCES = ("model", "truth", "anchor")
 BRANCHES = ("relit", "diffuse", "specular")
 
 
-def mixed_errors(anc, true_g: torch.Tensor, model_g: torch.Tensor, image_b: torch.Tensor, mask: torch.Tensor) -> dict:
+def mixed_errors(
+    anc,
+    true_g: torch.Tensor,
+    model_g: torch.Tensor,
+    image_b: torch.Tensor,
+    mask: torch.Tensor,
+    image_a: torch.Tensor | None = None,
+    change: dict | None = None,
+) -> dict:
     """{"D <source>, S <source>": (sum of squared tone-mapped errors on the mask, pixel count)} for every
-    mix; true_g, model_g: (B, 3, 3, H, W) cell-smoothed gains of the relit, D and S branches."""
+    mix; true_g, model_g: (B, 3, 3, H, W) cell-smoothed gains of the relit, D and S branches. With
+    ``image_a`` and ``change`` ({mix: ChangeR2}, filled here), each mix's change_r2 is accumulated too
+    (off the mask the target stands in: only the mask is read)."""
+    from pilight.data.colour import tonemap01
+    from pilight.eval.light_following import ChangeR2
     from pilight.relight import physics_first as pf
     from pilight.relight.encoding import tonemap
 
@@ -43,18 +55,32 @@ def mixed_errors(anc, true_g: torch.Tensor, model_g: torch.Tensor, image_b: torc
     out = {}
     for d in SOURCES:
         for s in SOURCES:
-            relit = tonemap(pf.compose_relit(anc, gains[d][:, 1], gains[s][:, 2])["relit"])
+            linear = pf.compose_relit(anc, gains[d][:, 1], gains[s][:, 2])["relit"]
+            relit = tonemap(linear)
             out[f"D {d}, S {s}"] = (float((m * (relit - target) ** 2).sum()), float(m.sum()))
+            if change is not None:
+                shown = torch.where(mask > 0.5, linear, image_b.float())
+                change.setdefault(f"D {d}, S {s}", ChangeR2()).update(
+                    tonemap01(shown), tonemap01(image_b.float()), tonemap01(image_a.float()), mask
+                )
     return out
 
 
-def explained(true_g: torch.Tensor, model_g: torch.Tensor, mask: torch.Tensor) -> dict:
-    """{branch: (sum sq error, sum target, sum target^2, weight)} for the explained-variance share."""
+def explained(
+    true_g: torch.Tensor, model_g: torch.Tensor, mask: torch.Tensor, metallic: torch.Tensor | None = None
+) -> dict:
+    """{branch: (sum sq error, sum target, sum target^2, weight)} for the explained-variance share; with
+    ``metallic``, also "specular, metal" and "specular, dielectric" (metallic > 0.5 or not)."""
     m = (mask[:, :1] > 0.5).float()
+    weights = {name: (1 - m) if name == "relit" else m for name in BRANCHES}
+    if metallic is not None:
+        metal = (metallic[:, :1] > 0.5).float()
+        weights |= {"specular, metal": m * metal, "specular, dielectric": m * (1 - metal)}
     out = {}
-    for i, name in enumerate(BRANCHES):
-        w = ((1 - m) if name == "relit" else m).expand_as(true_g[:, i])
+    for name, w in weights.items():
+        i = BRANCHES.index(name.split(",")[0])
         t, o = true_g[:, i], model_g[:, i]
+        w = w.expand_as(t)
         out[name] = (float((w * (t - o) ** 2).sum()), float((w * t).sum()), float((w * t * t).sum()), float(w.sum()))
     return out
 
@@ -95,6 +121,7 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"{args.model}: form {model.form.kind!r}; this benchmark reads physics-first gains")
     preds = optional_predictions(args.shards, args.pred, args.split, "stage2_branch_errors") if args.pred else None
     errors: dict = {}
+    change: dict = {}
     variance: dict = {}
     pairs = 0
     for n, batch in enumerate(make_loader(eval_dataset(args.shards, args.split, "relight"), 8)):
@@ -116,25 +143,29 @@ def main(argv: list[str] | None = None) -> int:
         # as inference reads them (RelightModel._physics_first_outputs): cell-smoothed
         model_g = torch.stack([cell_smooth(model_g[:, i], model._cell) for i in range(3)], 1)
         true_g = torch.stack([cell_smooth(true_g[:, i], model._cell) for i in range(3)], 1)
-        for k, (sq, cnt) in mixed_errors(anc, true_g, model_g, batch["image_b"], batch["mask"]).items():
+        mixed = mixed_errors(anc, true_g, model_g, batch["image_b"], batch["mask"], batch["image_a"], change)
+        for k, (sq, cnt) in mixed.items():
             e = errors.setdefault(k, [0.0, 0.0])
             e[0], e[1] = e[0] + sq, e[1] + cnt
-        for k, vals in explained(true_g, model_g, batch["mask"]).items():
+        for k, vals in explained(true_g, model_g, batch["mask"], intr["metallic"]).items():
             v = variance.setdefault(k, [0.0] * 4)
             variance[k] = [a + b for a, b in zip(v, vals)]
     table = {"pairs": pairs, "split": args.split, "conditions": "stage-1" if args.pred else "ground truth"}
     table["mse_on_mask"] = {k: sq / max(cnt, 1) for k, (sq, cnt) in errors.items()}
+    table["change_r2_mask"] = {k: c.compute()["mask"] for k, c in change.items()}
+    table["change_r2_mask_pair_median"] = {k: c.compute()["mask_pair_median"] for k, c in change.items()}
     table["explained"] = {}
     for k, (err, s1, s2, w) in variance.items():
         var = s2 - s1 * s1 / max(w, 1)
         table["explained"][k] = 1 - err / var if var > 0 else float("nan")
     print(f"{args.model} on {args.split} ({pairs} cross-light pairs, {table['conditions']} maps, relative)")
-    print("tone-mapped squared error on the mask of I = A_x D + S:")
+    print("I = A_x D + S on the mask: tone-mapped squared error, change_r2 pooled, change_r2 of the median pair")
     for k, v in table["mse_on_mask"].items():
-        print(f"  {k:28s} {v:.5f}")
+        r2, med = table["change_r2_mask"][k], table["change_r2_mask_pair_median"][k]
+        print(f"  {k:28s} {v:.5f}  {r2:+.3f}  {med:+.3f}" if med is not None else f"  {k:28s} {v:.5f}  {r2:+.3f}")
     print("share of each branch's target variance the model explains:")
     for k, v in table["explained"].items():
-        print(f"  {k:10s} {v:+.3f}")
+        print(f"  {k:22s} {v:+.3f}")
     if args.json:
         args.json.write_text(json.dumps(table, indent=1) + "\n")
     return 0

@@ -43,3 +43,32 @@ def test_explained_share_is_one_for_perfect_gains_and_zero_for_the_mean():
     mean_g = true_g.clone()
     mean_g[:, 1] = diffuse_mean
     assert share(mean_g)["diffuse"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_each_mix_gets_its_change_r2_and_perfect_gains_score_the_truths():
+    """change_r2 per mix: the model's equals the truth's when its gains are the truth's, and the anchor's when
+    they are zero; a gain the truth does not have lowers it."""
+    b, anc, true_g = setup()
+    scores = {}
+    for name, g in (("perfect", true_g), ("zero", torch.zeros_like(true_g)), ("off", true_g + 0.5)):
+        change = {}
+        branch_errors.mixed_errors(anc, true_g, g, b["image_b"], b["mask"], b["image_a"], change)
+        scores[name] = {k: c.compute()["mask"] for k, c in change.items()}
+    assert scores["perfect"]["D model, S model"] == scores["perfect"]["D truth, S truth"]
+    assert scores["zero"]["D model, S model"] == scores["zero"]["D anchor, S anchor"]
+    # each branch reads its own source: the model's zero S beside the true D is the anchor's S, not the truth's
+    assert scores["zero"]["D truth, S model"] == scores["zero"]["D truth, S anchor"]
+    assert scores["zero"]["D truth, S model"] != scores["zero"]["D truth, S truth"]
+    assert scores["off"]["D model, S model"] < scores["off"]["D truth, S truth"]
+
+
+def test_the_specular_share_splits_by_metal():
+    """The specular branch's share on metal and on dielectric pixels: the two parts' sums are the whole's."""
+    b, _, true_g = setup()
+    metallic = torch.zeros_like(b["mask"][:, :1])
+    metallic[..., : metallic.shape[-1] // 2] = 1.0
+    parts = branch_errors.explained(true_g, 0.5 * true_g, b["mask"], metallic)
+    whole, metal, dielectric = parts["specular"], parts["specular, metal"], parts["specular, dielectric"]
+    assert metal[3] > 0 and dielectric[3] > 0
+    for i in range(4):
+        assert metal[i] + dielectric[i] == pytest.approx(whole[i], rel=1e-5)
