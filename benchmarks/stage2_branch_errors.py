@@ -52,6 +52,8 @@ def mixed_errors(
     gains = {"model": model_g, "truth": true_g, "anchor": torch.zeros_like(true_g)}
     target = tonemap(image_b.float())
     m = (mask[:, :1] > 0.5).float().expand_as(target)
+    if change is not None:  # the mixes differ only in the relit image: tone-map the pair once
+        u_target, u_input = tonemap01(image_b.float()), tonemap01(image_a.float())
     out = {}
     for d in SOURCES:
         for s in SOURCES:
@@ -60,9 +62,7 @@ def mixed_errors(
             out[f"D {d}, S {s}"] = (float((m * (relit - target) ** 2).sum()), float(m.sum()))
             if change is not None:
                 shown = torch.where(mask > 0.5, linear, image_b.float())
-                change.setdefault(f"D {d}, S {s}", ChangeR2()).update(
-                    tonemap01(shown), tonemap01(image_b.float()), tonemap01(image_a.float()), mask
-                )
+                change.setdefault(f"D {d}, S {s}", ChangeR2()).update(tonemap01(shown), u_target, u_input, mask)
     return out
 
 
