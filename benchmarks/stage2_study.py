@@ -5,9 +5,11 @@
 
 Each seed trains the params' `relight` section with the -S overrides through the stage's training loop,
 then relights the test split's cross-light pairs with GROUND-TRUTH conditions (the question is the
-network's, not stage 1's) and prints, for the model and for the zero-gain anchor, in relative and
-absolute intensity: change_r2 on the mask and on the full image, and tone-mapped PSNR, beside the
-wall-clock seconds of training and the machine. ``gain_r2`` is how much of the variance of the true
+network's, not stage 1's) and, with --score-pred, again with stage-1 predictions as conditions (the
+figures prefixed ``s1_``: what a pipeline with that stage 1 would see). It prints, for the model and for
+the zero-gain anchor, in relative and absolute intensity: change_r2 on the mask (pooled, and the median
+pair's) and on the full image, and tone-mapped PSNR, beside the wall-clock seconds of training and the
+machine. ``gain_r2`` is how much of the variance of the true
 diffuse gains g_D (on the mask, relative intensity) the predicted gains explain: 0 = the anchor, 1 =
 perfect gains (the oracle's 0.96-0.97 change_r2).
 """
@@ -31,14 +33,18 @@ SINGLE_STEP = SamplingParams(mode="single_step", cfg_scale=1.0)
 
 
 @torch.no_grad()
-def score(task, shards: Path, split: str = "test", max_batches: int | None = None) -> dict[str, float]:
+def score(
+    task, shards: Path, split: str = "test", max_batches: int | None = None, preds: dict | None = None
+) -> dict[str, float]:
     """The figures above on ``split``'s cross-light pairs (its first ``max_batches`` batches of 8 when set:
-    the train split, scored to measure the generalisation gap, is large)."""
+    the train split, scored to measure the generalisation gap, is large), conditioned on ground truth, or
+    on ``preds`` (stage-1 predictions of the split, pilight.relight.conditions) when given."""
     from pilight.data.colour import tonemap01
     from pilight.data.shard_reader import eval_dataset, make_loader
     from pilight.eval.light_following import ChangeR2, cross_light
     from pilight.eval.metrics import psnr_per_image
     from pilight.relight import physics_first as pf
+    from pilight.relight.conditions import oracle_conditions
     from pilight.relight.intensity import relative_pair
 
     r2 = {f"{m}_{i}": ChangeR2() for m in ("model", "anchor") for i in ("rel", "abs")}
@@ -50,7 +56,7 @@ def score(task, shards: Path, split: str = "test", max_batches: int | None = Non
         batch = cross_light(batch)
         if batch is None:
             continue
-        intr = {k: batch[k] for k in ("albedo", "normal", "roughness", "metallic")}
+        intr = oracle_conditions(batch, preds)  # ground truth when preds is None
         target, inp, mask = tonemap01(batch["image_b"]), tonemap01(batch["image_a"]), batch["mask"]
         for i, intensity in (("rel", "relative"), ("abs", "absolute")):
             given = relative_pair(batch) if intensity == "relative" else batch
@@ -73,12 +79,15 @@ def score(task, shards: Path, split: str = "test", max_batches: int | None = Non
     for k, v in r2.items():
         c = v.compute()
         out[f"{k}_change_r2_mask"], out[f"{k}_change_r2_full"] = c["mask"], c["full"]
+        out[f"{k}_change_r2_pair_median"] = c["mask_pair_median"]
         out[f"{k}_psnr"] = sum(psnr[k]) / len(psnr[k])
     out["gain_r2"] = 1 - gain_err / max(gain_var, 1e-12)
     return out
 
 
-def run_seed(raw: dict, shards: Path, pred: Path, seed: int, train_batches: int = 0) -> dict:
+def run_seed(
+    raw: dict, shards: Path, pred: Path, seed: int, train_batches: int = 0, score_preds: dict | None = None
+) -> dict:
     from pilight.train.loop import train
     from pilight.train.relight import RelightTask
 
@@ -93,6 +102,8 @@ def run_seed(raw: dict, shards: Path, pred: Path, seed: int, train_batches: int 
         stats = train(task, p.train, Path(ckpt), None, seed=seed)
     task.stack.model.eval()
     out = {"seed": seed, "train_seconds": stats["seconds"], "steps": stats["steps"], **score(task, shards)}
+    if score_preds is not None:  # the same pairs, conditioned as a pipeline with that stage 1 would be
+        out |= {f"s1_{k}": v for k, v in score(task, shards, preds=score_preds).items()}
     if train_batches:  # the same figures on pairs it trained on: underfitting or a generalisation gap?
         out["train_split"] = score(task, shards, "train", train_batches)
     return out
@@ -105,6 +116,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pred", type=Path, default=Path("data/intrinsics_pred"))
     ap.add_argument("-S", dest="overrides", action="append", default=[], metavar="relight.KEY=VALUE")
     ap.add_argument("--seeds", type=int, nargs="+", default=[42])
+    ap.add_argument(
+        "--score-pred", type=Path, default=None, help="also score with these stage-1 predictions of the test split"
+    )
     ap.add_argument("--name", default=None)
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     ap.add_argument("--json", type=Path, default=None)
@@ -117,11 +131,16 @@ def main(argv: list[str] | None = None) -> int:
     raw = apply_overrides(read_params(args.params)["relight"], args.overrides, root="relight")
     RelightParams.model_validate(raw)
     from pilight import machine
+    from pilight.relight.conditions import load_condition_predictions
+
+    score_preds = None
+    if args.score_pred is not None:  # read once, before any training: a missing split fails here, not after it
+        score_preds = load_condition_predictions(args.shards, args.score_pred, "test", "stage2_study --score-pred")
 
     result = {"name": args.name or " ".join(args.overrides) or "params", "overrides": args.overrides}
     result |= {"machine": machine.one_line(), "seeds": []}
     for seed in args.seeds:
-        r = run_seed(raw, args.shards, args.pred, seed, args.train_batches)
+        r = run_seed(raw, args.shards, args.pred, seed, args.train_batches, score_preds)
         result["seeds"].append(r)
         print(json.dumps(r), flush=True)
         if args.json:
