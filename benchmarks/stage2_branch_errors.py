@@ -6,7 +6,8 @@
 The physics-first form relights as I = A_x D + S on the mask, with D and S gains g_D, g_S on their
 physics anchors (pilight.relight.physics_first). For each cross-light pair (relative intensity, single
 step), the model's gains are set beside the true ones (the training targets, cell means) and the relit
-image is formed from every mix of D and S in {model, truth, anchor (zero gain)}. Printed: the mean
+image is formed from every mix of D and S in {model, truth, anchor (zero gain)}, D also from the true
+gains' level per image alone and from the model's gains moved to that level. Printed: the mean
 tone-mapped squared error on the mask of each mix (what the image loss sees), and per branch the share
 of its target's variance the model explains (cell gains; on the mask for D and S, off it for the relit
 branch's gain on the input). Conditions: ground-truth maps, or stage-1 predictions with --pred.
@@ -28,7 +29,17 @@ from pilight.params import SamplingParams  # noqa: E402
 
 SINGLE_STEP = SamplingParams(mode="single_step", cfg_scale=1.0)
 SOURCES = ("model", "truth", "anchor")
+# the diffuse branch also takes the true gains' level per image (their mean on the mask) alone, and the
+# model's gains moved to that level: does the network miss the level or the shape? (docs: stage 2)
+D_SOURCES = (*SOURCES, "level", "model + level")
 BRANCHES = ("relit", "diffuse", "specular")
+
+
+def level_per_image(g: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """(B, C, H, W) gains -> their mean over the mask and the channels of each image, broadcast to g's shape."""
+    m = (mask[:, :1] > 0.5).float().expand_as(g)
+    mean = (g * m).flatten(1).sum(1) / m.flatten(1).sum(1).clamp_min(1.0)
+    return mean.view(-1, 1, 1, 1).expand_as(g)
 
 
 def mixed_errors(
@@ -41,7 +52,8 @@ def mixed_errors(
     change: dict | None = None,
 ) -> dict:
     """{"D <source>, S <source>": (sum of squared tone-mapped errors on the mask, pixel count)} for every
-    mix; true_g, model_g: (B, 3, 3, H, W) cell-smoothed gains of the relit, D and S branches. With
+    mix (D from D_SOURCES, S from SOURCES); true_g, model_g: (B, 3, 3, H, W) cell-smoothed gains of the
+    relit, D and S branches. With
     ``image_a`` and ``change`` ({mix: ChangeR2}, filled here), each mix's change_r2 is accumulated too
     (off the mask the target stands in: only the mask is read)."""
     from pilight.data.colour import tonemap01
@@ -49,15 +61,18 @@ def mixed_errors(
     from pilight.relight import physics_first as pf
     from pilight.relight.encoding import tonemap
 
-    gains = {"model": model_g, "truth": true_g, "anchor": torch.zeros_like(true_g)}
+    s_gains = {"model": model_g[:, 2], "truth": true_g[:, 2], "anchor": torch.zeros_like(true_g[:, 2])}
+    true_level = level_per_image(true_g[:, 1], mask)
+    d_gains = {"model": model_g[:, 1], "truth": true_g[:, 1], "anchor": torch.zeros_like(true_g[:, 1])}
+    d_gains |= {"level": true_level, "model + level": model_g[:, 1] - level_per_image(model_g[:, 1], mask) + true_level}
     target = tonemap(image_b.float())
     m = (mask[:, :1] > 0.5).float().expand_as(target)
     if change is not None:  # the mixes differ only in the relit image: tone-map the pair once
         u_target, u_input = tonemap01(image_b.float()), tonemap01(image_a.float())
     out = {}
-    for d in SOURCES:
+    for d in D_SOURCES:
         for s in SOURCES:
-            linear = pf.compose_relit(anc, gains[d][:, 1], gains[s][:, 2])["relit"]
+            linear = pf.compose_relit(anc, d_gains[d], s_gains[s])["relit"]
             relit = tonemap(linear)
             out[f"D {d}, S {s}"] = (float((m * (relit - target) ** 2).sum()), float(m.sum()))
             if change is not None:

@@ -72,3 +72,20 @@ def test_the_specular_share_splits_by_metal():
     assert metal[3] > 0 and dielectric[3] > 0
     for i in range(4):
         assert metal[i] + dielectric[i] == pytest.approx(whole[i], rel=1e-5)
+
+
+def test_the_level_mixes_take_the_true_gains_mean_per_image():
+    """D from the true gains' level alone equals the truth where the truth is one level per image; the model's
+    gains moved to the true level equal the truth when they differ from it by a constant."""
+    b, anc, true_g = setup()
+    flat = true_g.clone()
+    flat[:, 1] = torch.tensor([0.2, -0.4]).view(2, 1, 1, 1)  # one diffuse level per image
+    mixes = branch_errors.mixed_errors(anc, flat, flat + 0.3, b["image_b"], b["mask"])
+    truth = mixes["D truth, S truth"][0]
+    assert mixes["D level, S truth"][0] == pytest.approx(truth, rel=1e-5)
+    assert mixes["D model + level, S truth"][0] == pytest.approx(truth, rel=1e-5)
+    assert mixes["D model, S truth"][0] != pytest.approx(truth, rel=1e-3)
+    shaped = branch_errors.mixed_errors(anc, true_g, true_g + 0.3, b["image_b"], b["mask"])
+    truth = shaped["D truth, S truth"][0]
+    assert shaped["D model + level, S truth"][0] == pytest.approx(truth, rel=1e-5)
+    assert shaped["D level, S truth"][0] != pytest.approx(truth, rel=1e-3)
