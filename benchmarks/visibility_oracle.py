@@ -213,7 +213,6 @@ def study(renders: Path, positions: Path, split: str, light_mode: str, thickness
     whose ratio form cancels what lights a and b share, and g is the D branch's own target."""
     from pilight.data.colour import tonemap01
     from pilight.eval.light_following import ChangeR2
-    from pilight.physics.envmap import light_level
     from pilight.relight import physics_first as pf
 
     items = []  # per cross-light pair: g and vis on the mask, and what composing needs
@@ -232,11 +231,10 @@ def study(renders: Path, positions: Path, split: str, light_mode: str, thickness
                 )  # fmt: skip
                 a_x = anc.albedo
                 d_target = pf.diffuse_target(_t(got["image"]), _t(got["specular"]), a_x)
-                eps = pf.EPS_LEVEL * light_level(ball_b).view(1, 1, 1, 1)
-                g = pf.gain_of(d_target, anc.d_calc, eps).mean(1, keepdim=True)  # one gain per pixel
+                g = pf.gain_of(d_target, anc.d_calc, anc.eps).mean(1, keepdim=True)  # one gain per pixel
                 items.append(
                     {
-                        "view": view, "a": la, "b": lb, "sel": sel, "d_calc": anc.d_calc, "eps": eps,
+                        "view": view, "a": la, "b": lb, "sel": sel, "d_calc": anc.d_calc, "eps": anc.eps,
                         "albedo": a_x, "d_target": d_target, "g": g[0, 0][sel].double(),
                         "vis": torch.from_numpy(got["vis"])[sel].double(),
                     }
