@@ -100,6 +100,24 @@ def explained(
     return out
 
 
+def pair_gains(model, batch: dict, intr: dict, intensity: str):
+    """(maps, anchors, balls, true gains, model gains) of a pairs batch: the gains (B, 3, 3, H, W) of the
+    relit, D and S branches, the true ones the training targets as the stage-2 task forms them (cell means),
+    the model's from one single-step pass; both cell-smoothed as inference reads them
+    (RelightModel._physics_first_outputs)."""
+    from pilight.diffusion.codec import cell_smooth
+    from pilight.relight.branches import encode_conditions
+    from pilight.train.relight import RelightTask
+
+    maps, anc, balls = model._conditions(batch, intr, "cpu", intensity=intensity)
+    true_g = RelightTask._physics_first_targets(model, batch, anc, maps["image"], "cpu")
+    B, z_cond = batch["image_a"].shape[0], encode_conditions(model.stack.codec, maps, model.layout, model.width)
+    z0 = model.stack.sample(z_cond, torch.arange(model.V).repeat(B), maps["image"], model.V, SINGLE_STEP, None)
+    model_g = model.stack.codec.decode(z0).float().unflatten(0, (B, model.V))
+    smooth = lambda g: torch.stack([cell_smooth(g[:, i], model._cell) for i in range(g.shape[1])], 1)
+    return maps, anc, balls, smooth(true_g), smooth(model_g)
+
+
 def load(folder: Path):
     from pilight.models.folder import load_model
     from pilight.models.relight import RelightModel
@@ -124,12 +142,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     from pilight.data.shard_reader import eval_dataset, make_loader
-    from pilight.diffusion.codec import cell_smooth
     from pilight.eval.light_following import cross_light
-    from pilight.relight.branches import encode_conditions
     from pilight.relight.conditions import optional_predictions, oracle_conditions
     from pilight.relight.intensity import relative_pair
-    from pilight.train.relight import RelightTask
 
     model = load(args.model)
     if model.form.kind != "physics_first":
@@ -149,15 +164,7 @@ def main(argv: list[str] | None = None) -> int:
         batch = relative_pair(batch)
         intr = oracle_conditions(batch, preds)
         # the batch's balls are relative (relative_pair above), whatever the model's default intensity
-        maps, anc, _ = model._conditions(batch, intr, "cpu", intensity="relative")
-        # the training targets, as the stage-2 task forms them (cell means of g_r, g_D, g_S)
-        true_g = RelightTask._physics_first_targets(model, batch, anc, maps["image"], "cpu")
-        B, z_cond = batch["image_a"].shape[0], encode_conditions(model.stack.codec, maps, model.layout, model.width)
-        z0 = model.stack.sample(z_cond, torch.arange(model.V).repeat(B), maps["image"], model.V, SINGLE_STEP, None)
-        model_g = model.stack.codec.decode(z0).float().unflatten(0, (B, model.V))
-        # as inference reads them (RelightModel._physics_first_outputs): cell-smoothed
-        model_g = torch.stack([cell_smooth(model_g[:, i], model._cell) for i in range(3)], 1)
-        true_g = torch.stack([cell_smooth(true_g[:, i], model._cell) for i in range(3)], 1)
+        _, anc, _, true_g, model_g = pair_gains(model, batch, intr, "relative")
         mixed = mixed_errors(anc, true_g, model_g, batch["image_b"], batch["mask"], batch["image_a"], change)
         for k, (sq, cnt) in mixed.items():
             e = errors.setdefault(k, [0.0, 0.0])
