@@ -46,18 +46,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from stage2_branch_errors import level_per_image, load, pair_gains  # noqa: E402
+from stage2_branch_errors import level_per_image, load, masked_mean, pair_gains  # noqa: E402
 
 BRANCHES = {"D": 1, "S": 2}  # the physics-first gains' items in the stage-2 stack (relit, D, S)
 
 PROBED = ("mid_block", "down_blocks.-1")  # the UNet blocks a level head would read
 LOG_FEATURES = ("fb", "fa", "level9_over_level1", "backdrop", "input_over_fit", "albedo", "albedo_eff")
-
-
-def masked_mean(x: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
-    """(B, C, H, W) and a (B, 1, H, W) 0/1 mask -> (B,) mean over the mask and the channels."""
-    m = m.expand_as(x)
-    return (x * m).flatten(1).sum(1) / m.flatten(1).sum(1).clamp_min(1)
 
 
 def moved_to_level(g: torch.Tensor, mask: torch.Tensor, level: torch.Tensor) -> torch.Tensor:
@@ -143,7 +137,7 @@ def collect(model, shards: Path, split: str, pred: Path | None, light_level: str
     from pilight.relight.conditions import optional_predictions, oracle_conditions
     from pilight.relight.intensity import relative_pair
 
-    preds = optional_predictions(shards, pred, split, "diffuse_level_predictors") if pred else None
+    preds = optional_predictions(shards, pred, split, "branch_level_predictors") if pred else None
     probe = UNetProbe(model.stack.model.unet)
     rows: dict[str, list] = {"features": [], "probe": [], "scene": [], "kept": []}
     rows |= {f"{kind} {b}": [] for kind in ("true", "model") for b in BRANCHES}

@@ -35,11 +35,15 @@ D_SOURCES = (*SOURCES, "level", "model + level")
 BRANCHES = ("relit", "diffuse", "specular")
 
 
+def masked_mean(x: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+    """(B, C, H, W) and a (B, 1, H, W) 0/1 weight -> (B,) mean over the weight and the channels."""
+    m = m.expand_as(x)
+    return (x * m).flatten(1).sum(1) / m.flatten(1).sum(1).clamp_min(1)
+
+
 def level_per_image(g: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """(B, C, H, W) gains -> their mean over the mask and the channels of each image, broadcast to g's shape."""
-    m = (mask[:, :1] > 0.5).float().expand_as(g)
-    mean = (g * m).flatten(1).sum(1) / m.flatten(1).sum(1).clamp_min(1.0)
-    return mean.view(-1, 1, 1, 1).expand_as(g)
+    return masked_mean(g, (mask[:, :1] > 0.5).float()).view(-1, 1, 1, 1).expand_as(g)
 
 
 def mixed_errors(
