@@ -36,8 +36,11 @@ MUST_MATCH: dict[str, tuple[str, ...]] = {
         "form.specular_anchor",
         "d_calc_condition",
         "ds_ball",
+        "level_prior",  # the gains were learnt on anchors at the prior's level (pilight.relight.level_prior)
     ),
 }
+# What a saved config without a key (saved before the key existed) means by it.
+ABSENT_MEANS: dict[str, Any] = {"level_prior": None}
 
 
 # (key, the base's value, the params' value) -> the parameters the params' model adds, which start at values
@@ -55,7 +58,7 @@ class BaseModelError(ValueError):
 def _get(d: dict, dotted: str) -> Any:
     for part in dotted.split("."):
         if not isinstance(d, dict) or part not in d:
-            return "<absent>"
+            return ABSENT_MEANS.get(dotted, "<absent>")
         d = d[part]
     return d
 
@@ -79,7 +82,8 @@ def mismatches(stage: str, wanted: dict, saved: dict) -> list[str]:
     return [
         f"{stage}.{k}: the base has {_get(saved, k)!r}, the params ask for {_get(wanted, k)!r}"
         for k in MUST_MATCH[stage]
-        if _get(saved, k) != _get(wanted, k) and (k, _get(saved, k), _get(wanted, k)) not in EXTENSIONS
+        if _get(saved, k) != _get(wanted, k)
+        and not any(ext == (k, _get(saved, k), _get(wanted, k)) for ext in EXTENSIONS)
     ]
 
 

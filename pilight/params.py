@@ -866,6 +866,14 @@ def migrate_saved_relight(relight: dict) -> dict:
     return {**kept, "form": form_from_flat(relight)}
 
 
+class LevelPrior(_Section):
+    """log l' = alpha + beta log l for the input light's estimated level l (pilight.relight.level_prior),
+    fitted on the training inputs by benchmarks/fit_level_prior.py."""
+
+    alpha: float = Field(ge=-5.0, le=5.0, description="the line's intercept, in log level")
+    beta: float = Field(gt=0.0, le=2.0, description="its slope: < 1 shrinks toward the training lights' level")
+
+
 class RelightParams(ModelParams):
     """Stage 2: L = L_vpred + (1/t)(lambda_ds L_DS + lambda_ps L_PS + lambda_rec L_rec)."""
 
@@ -900,6 +908,12 @@ class RelightParams(ModelParams):
         description="relative = the target light's level is k times the input's own estimated light (k = "
         "level(ball_b) / level(ball_a) for rendered pairs; k = 1 keeps the exposure), in training and at test "
         "(pilight.relight.intensity); absolute = the ball as rendered (the paper)",
+    )
+    level_prior: LevelPrior | None = Field(
+        None,
+        description="relative intensity only: the input light's estimated level shrunk by a line fitted on the "
+        "training inputs (benchmarks/fit_level_prior.py); train and run a model with the same prior; null = the "
+        "estimate as it is",
     )
     identity_pairs: bool = Field(
         True,

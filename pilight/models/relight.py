@@ -130,8 +130,11 @@ class RelightModel:
             source = pf.source_balls(image_a, intr, mask, size)
         if (intensity or self.p.intensity) == "relative":
             # the level from its own fit (first order: pilight.physics.source_light), unless rendered
+            prior = self.p.level_prior
             balls = to_source_level(
-                balls, *(source if rendered else pf.source_balls(image_a, intr, mask, size, level=True))
+                balls,
+                *(source if rendered else pf.source_balls(image_a, intr, mask, size, level=True)),
+                prior=None if rendered or prior is None else (prior.alpha, prior.beta),
             )
         ball_b = balls["ball_b"]
         if not self.physics_first:

@@ -41,6 +41,7 @@ import torch
 
 from pilight.data.colour import REC709_LUMINANCE
 from pilight.physics.envmap import light_level
+from pilight.relight.level_prior import shrink_level
 
 INTENSITIES = ("relative", "absolute")
 EXPOSURES = ("photo", "light")  # what k = 1 keeps in the photo API: the photo's exposure, or its light's level
@@ -62,10 +63,16 @@ def relative_light(ball: torch.Tensor, k: float | torch.Tensor) -> torch.Tensor:
     return ball / light_level(ball).to(ball.dtype) * torch.as_tensor(k, dtype=ball.dtype).reshape(-1, 1, 1, 1)
 
 
-def to_source_level(balls: dict[str, torch.Tensor], source: torch.Tensor, found: torch.Tensor) -> dict:
-    """Relative balls -> balls at the input's estimated light level (``source``: its estimated ball);
-    inputs not ``found`` keep them as they are."""
-    scale = torch.where(found[:, None, None, None], light_level(source), torch.ones_like(light_level(source)))
+def to_source_level(
+    balls: dict[str, torch.Tensor], source: torch.Tensor, found: torch.Tensor, prior: tuple[float, float] | None = None
+) -> dict:
+    """Relative balls -> balls at the input's estimated light level (``source``: its estimated ball), or at
+    that level shrunk by ``prior`` = (alpha, beta) (pilight.relight.level_prior); inputs not ``found`` keep
+    them as they are."""
+    level = light_level(source)
+    if prior is not None:
+        level = shrink_level(level, *prior)
+    scale = torch.where(found[:, None, None, None], level, torch.ones_like(level))
     return {k: v * scale.to(v.dtype) for k, v in balls.items()}
 
 
