@@ -72,15 +72,15 @@ def base_folder(stage: str, path: str | None = None) -> Path:
     return Path(path) / stage if path else BASE_DIR / stage
 
 
-def mismatches(stage: str, wanted: dict, saved: dict) -> list[str]:
-    """``key: base has X, params ask for Y`` for every MUST_MATCH key that differs."""
+def mismatches(stage: str, wanted: dict, saved: dict, whose: str = "the base") -> list[str]:
+    """``key: <whose> has X, params ask for Y`` for every MUST_MATCH key that differs."""
     from pilight.params import migrate_saved_relight
 
     wanted, saved = _flat(wanted), _flat(saved)
     if stage == "relight":  # a base saved before stage 2's form was one choice
         saved = migrate_saved_relight(saved)
     return [
-        f"{stage}.{k}: the base has {_get(saved, k)!r}, the params ask for {_get(wanted, k)!r}"
+        f"{stage}.{k}: {whose} has {_get(saved, k)!r}, the params ask for {_get(wanted, k)!r}"
         for k in MUST_MATCH[stage]
         if _get(saved, k) != _get(wanted, k)
         and not any(ext == (k, _get(saved, k), _get(wanted, k)) for ext in EXTENSIONS)

@@ -310,6 +310,29 @@ def test_missing_model_is_a_clear_error(shards, tmp_path):
     assert r.returncode == 1 and "trained model not found" in r.stderr, r.stderr
 
 
+def test_a_model_run_with_another_level_prior_is_refused(shards, tmp_path):
+    """The relight stage builds the model from the params: run without the prior it was trained with, a model
+    would relight at another level without a word. The stage refuses, names the key, and writes nothing."""
+    from pilight.models.folder import save_model
+    from pilight.params import load_section
+
+    (tmp_path / "plain").mkdir()
+    (tmp_path / "prior").mkdir()
+    plain = _params(tmp_path / "plain")
+    with_prior = _params(tmp_path / "prior", level_prior={"alpha": -0.27, "beta": 0.43})
+    p = load_section("relight", with_prior)
+    torch.manual_seed(0)
+    save_model(RelightTask(p, shards, seed=0).stack, tmp_path / "model", p.model_dump(mode="json"))
+    args = ["--shards", shards, "--pred", tmp_path / "nopred", "--model", tmp_path / "model"]
+    outs = ["--out", tmp_path / "relit", "--metrics", tmp_path / "m.json"]
+    r = _run("relight.py", "--params", plain, *args, *outs)
+    assert r.returncode == 1, r.stderr
+    assert "relight.level_prior: " in r.stderr and "has {'alpha': -0.27, 'beta': 0.43}" in r.stderr, r.stderr
+    assert not (tmp_path / "relit").exists() and not (tmp_path / "m.json").exists()
+    r = _run("relight.py", "--params", with_prior, *args, *outs)
+    assert r.returncode == 0, r.stderr
+
+
 def test_train_without_predictions_is_a_clear_error(shards, tmp_path):
     r = _run(
         "train_relight.py",
