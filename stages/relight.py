@@ -30,33 +30,10 @@ def options(ap) -> None:
     ap.add_argument("--no-flip-check", action="store_true", help="skip the flipped-normal check (one extra batch)")
 
 
-def check_saved_params(model_dir: Path, p) -> None:
-    """The model is built from the params, so they must mean what its training meant: the keys init: base
-    also checks (pilight.base_model.MUST_MATCH), the light's level prior among them (a model trained with a
-    prior and run without one relights at another level, silently). A ModelError names each key."""
-    import json
-
-    from pilight.base_model import mismatches
-    from pilight.models.stack import ModelError
-
-    cfg = Path(model_dir) / "config.json"
-    try:
-        saved = json.loads(cfg.read_text(encoding="utf-8"))["params"]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise ModelError(f"{cfg}: unreadable model config ({type(exc).__name__}: {exc}); rerun train_relight") from None
-    wrong = mismatches("relight", p.model_dump(mode="json"), saved, whose=str(model_dir))
-    if wrong:
-        raise ModelError(
-            f"{cfg}: the params build another model than the one trained:\n  "
-            + "\n  ".join(wrong)
-            + "\nset these relight keys as the model has them, or retrain it (dvc repro train_relight)"
-        )
-
-
 def body(args, base, p, ip) -> int:
     from pilight.data.shard_reader import read_index
     from pilight.eval.relit_pairs import relight_split
-    from pilight.models.folder import load_model
+    from pilight.models.folder import check_saved_params, load_model
     from pilight.models.relight import RelightModel
     from pilight.models.stack import ModelError, check_image_size
     from pilight.relight.conditions import optional_predictions
@@ -68,7 +45,7 @@ def body(args, base, p, ip) -> int:
         model = RelightModel(p)
         check_image_size(tuple(index["sizes"]["image"][:2]), model.stack.codec.factor, f"{args.shards}/index.json")
         load_model(model.stack, args.model)
-        check_saved_params(args.model, p)
+        check_saved_params(args.model, "relight", p)
         preds = optional_predictions(args.shards, args.pred, ip.split, "relight")
     model.stack.model.eval()
     m = relight_split(model, args.shards, args.out, ip.split, ip, base.training_seed, preds, not args.no_flip_check)

@@ -70,6 +70,7 @@ def _seeds_of(stage: str, params: Path, monkeypatch) -> list:
     monkeypatch.setattr(intrinsics_model, "IntrinsicsModel", _stub_task(None))
     monkeypatch.setattr(relight_model, "RelightModel", _stub_task(None))
     monkeypatch.setattr(folder, "load_model", lambda *a, **k: None)
+    monkeypatch.setattr(folder, "check_saved_params", lambda *a, **k: None)  # reads the model's config.json
     monkeypatch.setattr(stack, "check_image_size", lambda *a, **k: None)
     monkeypatch.setattr(
         shards, "read_index", lambda d: {"splits": {"test": {"shards": ["x"]}}, "sizes": {"image": [16, 16]}}
