@@ -87,6 +87,30 @@ def mismatches(stage: str, wanted: dict, saved: dict, whose: str = "the base") -
     ]
 
 
+def check_saved_params(model_dir: Path, stage: str, p) -> None:
+    """A stage that builds its model from the params must build the one that was trained: the keys that
+    ``init: base`` also checks (pilight.base_model.MUST_MATCH; for stage 2 the light's level prior among
+    them, as a model run without the prior it was trained with relights at another level, silently). A
+    ModelError names the folder's config.json and each key."""
+    from pilight.models.folder import CONFIG_FILE
+    from pilight.models.stack import ModelError
+
+    cfg = Path(model_dir) / CONFIG_FILE
+    try:
+        saved = json.loads(cfg.read_text(encoding="utf-8"))["params"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ModelError(
+            f"{cfg}: unreadable model config ({type(exc).__name__}: {exc}); rerun the training stage"
+        ) from None
+    wrong = mismatches(stage, p.model_dump(mode="json"), saved, whose=str(model_dir))
+    if wrong:
+        raise ModelError(
+            f"{cfg}: the params build another model than the one trained:\n  "
+            + "\n  ".join(wrong)
+            + f"\nset these {stage} keys as the model has them, or retrain it"
+        )
+
+
 def extended_parts(wanted: dict, saved: dict) -> tuple[str, ...]:
     """The parameter prefixes the params' model adds to the base's (EXTENSIONS), to start from their initial values."""
     return tuple(

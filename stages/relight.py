@@ -31,9 +31,10 @@ def options(ap) -> None:
 
 
 def body(args, base, p, ip) -> int:
+    from pilight.base_model import check_saved_params
     from pilight.data.shard_reader import read_index
     from pilight.eval.relit_pairs import relight_split
-    from pilight.models.folder import check_saved_params, load_model
+    from pilight.models.folder import load_model
     from pilight.models.relight import RelightModel
     from pilight.models.stack import ModelError, check_image_size
     from pilight.relight.conditions import optional_predictions

@@ -51,6 +51,7 @@ def _stub_task(seen: list | None, factor: int = 4):
 def _seeds_of(stage: str, params: Path, monkeypatch) -> list:
     """The seeds ``stage`` hands to its task, its run identity, sampling and sweeps, with the heavy parts
     stubbed (stages/<stage>.py runs in-process up to the point its seeds are used)."""
+    import pilight.base_model as base_model
     import pilight.data.shard_reader as shards
     import pilight.eval.predict_intrinsics as predict
     import pilight.eval.relit_pairs as relit_pairs
@@ -70,7 +71,7 @@ def _seeds_of(stage: str, params: Path, monkeypatch) -> list:
     monkeypatch.setattr(intrinsics_model, "IntrinsicsModel", _stub_task(None))
     monkeypatch.setattr(relight_model, "RelightModel", _stub_task(None))
     monkeypatch.setattr(folder, "load_model", lambda *a, **k: None)
-    monkeypatch.setattr(folder, "check_saved_params", lambda *a, **k: None)  # reads the model's config.json
+    monkeypatch.setattr(base_model, "check_saved_params", lambda *a, **k: None)  # reads the model's config.json
     monkeypatch.setattr(stack, "check_image_size", lambda *a, **k: None)
     monkeypatch.setattr(
         shards, "read_index", lambda d: {"splits": {"test": {"shards": ["x"]}}, "sizes": {"image": [16, 16]}}

@@ -132,29 +132,6 @@ def verify_model_folder(model_dir: Path, *, trust_unverified: bool = False) -> b
     return verify_manifest(model_dir, COVERED, trust_unverified=trust_unverified, fix="rerun the training stage")
 
 
-def check_saved_params(model_dir: Path, stage: str, p) -> None:
-    """A stage that builds its model from the params must build the one that was trained: the keys that
-    ``init: base`` also checks (pilight.base_model.MUST_MATCH; for stage 2 the light's level prior among
-    them, as a model run without the prior it was trained with relights at another level, silently). A
-    ModelError names the folder's config.json and each key."""
-    from pilight.base_model import mismatches
-
-    cfg = Path(model_dir) / CONFIG_FILE
-    try:
-        saved = json.loads(cfg.read_text(encoding="utf-8"))["params"]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise ModelError(
-            f"{cfg}: unreadable model config ({type(exc).__name__}: {exc}); rerun the training stage"
-        ) from None
-    wrong = mismatches(stage, p.model_dump(mode="json"), saved, whose=str(model_dir))
-    if wrong:
-        raise ModelError(
-            f"{cfg}: the params build another model than the one trained:\n  "
-            + "\n  ".join(wrong)
-            + f"\nset these {stage} keys as the model has them, or retrain it"
-        )
-
-
 def load_model(
     stack: DiffusionStack,
     model_dir: Path,
