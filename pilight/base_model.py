@@ -72,6 +72,14 @@ def base_folder(stage: str, path: str | None = None) -> Path:
     return Path(path) / stage if path else BASE_DIR / stage
 
 
+def saved_params(cfg: Path, error: type[Exception], fix: str = "") -> dict:
+    """The params a model folder's config.json was saved with; ``error`` naming the file when unreadable."""
+    try:
+        return json.loads(cfg.read_text(encoding="utf-8"))["params"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise error(f"{cfg}: unreadable ({type(exc).__name__}: {exc}){fix}") from None
+
+
 def mismatches(stage: str, wanted: dict, saved: dict, whose: str = "the base") -> list[str]:
     """``key: <whose> has X, params ask for Y`` for every MUST_MATCH key that differs."""
     from pilight.params import migrate_saved_relight
@@ -96,12 +104,7 @@ def check_saved_params(model_dir: Path, stage: str, p) -> None:
     from pilight.models.stack import ModelError
 
     cfg = Path(model_dir) / CONFIG_FILE
-    try:
-        saved = json.loads(cfg.read_text(encoding="utf-8"))["params"]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise ModelError(
-            f"{cfg}: unreadable model config ({type(exc).__name__}: {exc}); rerun the training stage"
-        ) from None
+    saved = saved_params(cfg, ModelError, "; rerun the training stage")
     wrong = mismatches(stage, p.model_dump(mode="json"), saved, whose=str(model_dir))
     if wrong:
         raise ModelError(
@@ -134,10 +137,7 @@ def init_from_base(stack, p, stage: str) -> Path:
             f"{stage}.unet.init is 'base' but {cfg} does not exist: the shipped base lives in "
             f"{BASE_DIR} (git), or set {stage}.unet.path to a folder holding {stage}/config.json"
         )
-    try:
-        saved = json.loads(cfg.read_text(encoding="utf-8"))["params"]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise BaseModelError(f"{cfg}: unreadable ({type(exc).__name__}: {exc})") from None
+    saved = saved_params(cfg, BaseModelError)
     wrong = mismatches(stage, p.model_dump(mode="json"), saved)
     if wrong:
         raise BaseModelError(
