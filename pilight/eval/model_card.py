@@ -34,6 +34,9 @@ def _training(stage: str, p, log: dict, label: str | None = None, also: str = ""
     seconds = log.get("seconds")
     took = f"{seconds / 3600:.2f} h" if isinstance(seconds, int | float) else "?"
     extra = f", objective {p.objective}, layout {p.layout}" if stage == "intrinsics" else ""
+    prior = getattr(p, "level_prior", None)
+    if prior is not None:  # the weights relight at the prior's level: params without it would not (MUST_MATCH)
+        extra += f", light-level prior alpha {prior.alpha}, beta {prior.beta} (relight.level_prior)"
     precision = log.get("mixed_precision", m.get("mixed_precision", "?"))
     precision = {"no": "fp32"}.get(precision, precision)  # accelerate calls full precision "no"
     return (

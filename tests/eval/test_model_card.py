@@ -7,6 +7,7 @@ from __future__ import annotations
 import pytest
 
 from fixtures.script_modules import load_stage
+from fixtures.stage_scripts import params_file
 from fixtures.tiny_models import REPO
 from pilight.eval.model_card import model_card
 from pilight.params import load_section
@@ -40,6 +41,17 @@ def test_a_full_precision_stage_reads_fp32_not_accelerates_no():
     training = {"relight": {"steps": 2000, "mixed_precision": "no", "seconds": 733.0}}
     card = _card(REPO / "base" / "params.yaml", training)
     assert "fp32 precision" in card and "no precision" not in card
+
+
+def test_a_stage_2_trained_with_a_light_level_prior_says_which(tmp_path):
+    """Its weights relight at the prior's level, and params without the same prior are refused: the card
+    names it, so a reader can set it."""
+    plain = params_file(tmp_path, {"relight": {"level_prior": None}})
+    assert "light-level prior" not in _card(plain)
+    (tmp_path / "p").mkdir()
+    with_prior = params_file(tmp_path / "p", {"relight": {"level_prior": {"alpha": -0.25, "beta": 0.44}}})
+    line = next(x for x in _card(with_prior).splitlines() if x.startswith("- **relight**"))
+    assert "light-level prior alpha -0.25, beta 0.44 (relight.level_prior)" in line
 
 
 def test_a_stage_not_retrained_keeps_its_previous_training_line():

@@ -318,7 +318,7 @@ def test_a_model_run_with_another_level_prior_is_refused(shards, tmp_path):
 
     (tmp_path / "plain").mkdir()
     (tmp_path / "prior").mkdir()
-    plain = _params(tmp_path / "plain")
+    plain = _params(tmp_path / "plain", level_prior=None)
     with_prior = _params(tmp_path / "prior", level_prior={"alpha": -0.27, "beta": 0.43})
     p = load_section("relight", with_prior)
     torch.manual_seed(0)
