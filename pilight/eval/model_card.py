@@ -27,8 +27,9 @@ def _figures(metrics: dict[str, dict], keys: list[str]) -> list[str]:
     return rows
 
 
-def _training(stage: str, p, log: dict, label: str | None = None, also: str = "") -> str:
-    """A stage's Training line; ``label`` replaces the bold stage name, ``also`` ends the run's description."""
+def _training(stage: str, p, log: dict, label: str | None = None, also: str = "", seed: int | None = None) -> str:
+    """A stage's Training line; ``label`` replaces the bold stage name, ``also`` ends the run's description,
+    ``seed`` is the run's (base.train_seed, else base.seed): two runs of one recipe differ by it alone."""
     m = log.get("machine", {})
     where = m.get("device") if m.get("device") not in (None, "cpu") else f"{m.get('cpu')}, {m.get('cores')} cores"
     seconds = log.get("seconds")
@@ -41,7 +42,8 @@ def _training(stage: str, p, log: dict, label: str | None = None, also: str = ""
     precision = {"no": "fp32"}.get(precision, precision)  # accelerate calls full precision "no"
     return (
         f"- {label or f'**{stage}**:'} {log.get('steps', p.train.steps)} steps of {p.train.batch_size}, "
-        f"lr {p.train.lr} ({p.train.lr_schedule}), {precision} precision{extra}{also}; "
+        f"lr {p.train.lr} ({p.train.lr_schedule}), {precision} precision{extra}{also}"
+        f"{f', seed {seed}' if seed is not None else ''}; "
         f"{took} on {where}"
     )
 
@@ -119,7 +121,7 @@ def model_card(
             line
             for stage, p in (("intrinsics", intrinsics), ("relight", relight))
             for line in (
-                kept[stage] if stage in kept else _training(stage, p, training.get(stage, {})),
+                kept[stage] if stage in kept else _training(stage, p, training.get(stage, {}), seed=base.training_seed),
                 *([_tuning(stage, tuned[stage][0], p, tuned[stage][1])] if stage in tuned else []),
             )
         ),

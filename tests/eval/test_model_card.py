@@ -54,6 +54,15 @@ def test_a_stage_2_trained_with_a_light_level_prior_says_which(tmp_path):
     assert "light-level prior alpha -0.25, beta 0.44 (relight.level_prior)" in line
 
 
+def test_a_retrained_stage_names_its_training_seed(tmp_path):
+    """Two runs of one recipe differ by their seed alone (the twenty-first session trained seeds 1000 and
+    1001 of the base's stage 2): the card says which, base.train_seed or, when null, base.seed."""
+    line = lambda card: next(x for x in card.splitlines() if x.startswith("- **relight**"))
+    assert ", seed 1001;" in line(_card(params_file(tmp_path, {"base": {"seed": 1000, "train_seed": 1001}})))
+    (tmp_path / "n").mkdir()
+    assert ", seed 1000;" in line(_card(params_file(tmp_path / "n", {"base": {"seed": 1000, "train_seed": None}})))
+
+
 def test_a_stage_not_retrained_keeps_its_previous_training_line():
     kept = "- **intrinsics**: 6000 steps of 8, lr 0.0002 (cosine), bf16 precision; 0.58 h on a CPU (kept)"
     training = {"relight": {"steps": 10000, "mixed_precision": "bf16", "seconds": 3600.0}}
