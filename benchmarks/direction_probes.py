@@ -31,6 +31,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pilight.data.predictions import read_predictions  # noqa: E402
+from pilight.data.schema import sample_key  # noqa: E402
 from pilight.data.shard_reader import eval_dataset, make_loader  # noqa: E402
 from pilight.eval.light_following import (  # noqa: E402
     PROBE_AZIMUTH_DEG,
@@ -40,6 +41,7 @@ from pilight.eval.light_following import (  # noqa: E402
     probe_key,
     select_probes,
 )
+from pilight.eval.metrics import angular_errors  # noqa: E402
 from pilight.eval.relight import PROBE_COUNT_MAX  # noqa: E402
 from pilight.lights import direction  # noqa: E402
 
@@ -58,9 +60,7 @@ def lambert_asymmetry(normal: torch.Tensor, normal_gt: torch.Tensor, mask: torch
 
 def mean_angle_deg(normal: torch.Tensor, normal_gt: torch.Tensor, mask: torch.Tensor) -> float:
     """Mean angular error (degrees) of ``normal`` against ``normal_gt`` over the mask, one image."""
-    n = torch.nn.functional.normalize(normal.float(), dim=1)
-    cos = (n * normal_gt.float()).sum(1).clamp(-1, 1)
-    return float(torch.rad2deg(torch.acos(cos))[mask[:, 0] > 0.5].mean())
+    return float(angular_errors(normal.float(), normal_gt.float(), mask).mean())  # the masked pixels only
 
 
 def probe_rows(shards: Path, pred: Path, relit: Path, split: str) -> list[dict]:
@@ -73,7 +73,7 @@ def probe_rows(shards: Path, pred: Path, relit: Path, split: str) -> list[dict]:
         if probe_key(p, "right") not in relit_maps:
             continue
         meta = json.loads(p["meta_a"][0])
-        image = f"{meta['scene']}_v{meta['view']:02d}_l{meta['light']:02d}"
+        image = sample_key(meta["scene"], meta["view"], meta["light"])
         if image not in stage1:
             raise SystemExit(f"{pred}: no stage-1 prediction for probe image {image} (split {split!r})")
         normal_gt, mask = p["normal"], p["mask"]

@@ -30,6 +30,7 @@ import json
 
 import torch
 
+from pilight.data.schema import sample_key
 from pilight.lights import direction as direction_from_angles  # azimuth 0 = from the camera, +90 = camera-right
 from pilight.physics.shading import ball_from_direction
 
@@ -99,7 +100,7 @@ def select_probes(batches, count: int) -> list[dict]:
         ok = sides_visible(b["normal"], b["mask"])
         for i, _key in enumerate(b["key"]):
             ma, mb = json.loads(b["meta_a"][i]), json.loads(b["meta_b"][i])
-            image = f"{ma['scene']}_v{ma['view']:02d}_l{ma['light']:02d}"
+            image = sample_key(ma["scene"], ma["view"], ma["light"])
             if ma["light"] == mb["light"] or image in seen or not ok[i]:
                 continue
             seen.add(image)
@@ -143,7 +144,7 @@ PROBE_SPLIT = "probes"  # the relit folder's split that holds the probe images' 
 def probe_key(probe: dict, light: str) -> str:
     """`<scene>_vNN_lNN_probe_<light>` of a probe image (a one-sample batch of select_probes)."""
     ma = json.loads(probe["meta_a"][0])
-    return f"{ma['scene']}_v{ma['view']:02d}_l{ma['light']:02d}_probe_{light}"
+    return f"{sample_key(ma['scene'], ma['view'], ma['light'])}_probe_{light}"
 
 
 def probe_batch(probe: dict) -> dict:
