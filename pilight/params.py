@@ -101,6 +101,10 @@ class BaseParams(_Section):
         """The seed of the stages after the shards: ``train_seed``, or ``seed`` when it is null."""
         return self.seed if self.train_seed is None else self.train_seed
 
+    def stage_training_seed(self, train: TrainParams) -> int:
+        """A training stage's seed: its own ``train.seed`` where set, else :attr:`training_seed`."""
+        return self.training_seed if train.seed is None else train.seed
+
 
 class Range(_Section):
     lo: float = Field(ge=-1e6, le=1e6)
@@ -669,6 +673,13 @@ class TrainParams(_Section):
     log_every: int = Field(10, ge=1, le=MAX_STEPS)
     image_every: int = Field(200, ge=1, le=MAX_STEPS)
     num_workers: int = Field(0, ge=0, le=256)
+    seed: int | None = Field(
+        None,
+        ge=0,
+        le=MAX_SEED,
+        description="this stage's training seed; null = base.train_seed (else base.seed). Pins one stage: a "
+        "stage retrained with its own seed on another kept as it was (the shipped base's stage 2)",
+    )
 
     @field_validator("mixed_precision", mode="before")
     @classmethod

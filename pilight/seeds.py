@@ -322,6 +322,14 @@ def plan(
                 raise UsageError(str(exc)) from None
             except Exception as exc:  # DVC's Hydra errors: a value its grammar refuses
                 raise UsageError(f"-S {' -S '.join(overrides)}: {exc}") from None
+            for section in ("intrinsics", "relight"):  # a pinned stage would not vary with --seeds
+                pinned = params.get(section, {}).get("train", {}).get("seed")
+                if pinned is not None:
+                    raise UsageError(
+                        f"{PARAMS} with -S {' -S '.join(overrides)}: {section}.train.seed "
+                        f"is {pinned}, which pins that stage's training seed, so --seeds would not vary it; set it "
+                        "to null"
+                    )
             digest = hashlib.sha1(json.dumps([params, sorted(targets)], sort_keys=True).encode()).hexdigest()[:7]
             runs.append(Run(arm, seed, overrides, params, f"{prefix}-{arm}-s{seed}-{digest}"))
     return runs

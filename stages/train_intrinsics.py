@@ -29,12 +29,14 @@ def body(args, base, p) -> int:
     from pilight.train.intrinsics import IntrinsicsTask
     from pilight.train.stage import run_training_stage
 
+    # after the shards: the stage's own train.seed, else base.train_seed, else base.seed
+    seed = base.stage_training_seed(p.train)
     return run_training_stage(
         "train_intrinsics",
         "intrinsics",
-        base.model_copy(update={"seed": base.training_seed}),  # after the shards: base.train_seed (null = seed)
+        base.model_copy(update={"seed": seed}),
         p,
-        lambda: IntrinsicsTask(p, args.shards, seed=base.training_seed),
+        lambda: IntrinsicsTask(p, args.shards, seed=seed),
         shards=args.shards,
         data=[args.shards],
         out=args.out,

@@ -38,12 +38,14 @@ def body(args, base, p) -> int:
     from pilight.train.stage import run_training_stage
 
     data = [args.shards] + ([args.pred] if p.conditions != "gt" else [])  # predictions only when they are used
+    # after the shards: the stage's own train.seed, else base.train_seed, else base.seed
+    seed = base.stage_training_seed(p.train)
     return run_training_stage(
         "train_relight",
         "relight",
-        base.model_copy(update={"seed": base.training_seed}),  # after the shards: base.train_seed (null = seed)
+        base.model_copy(update={"seed": seed}),
         p,
-        lambda: RelightTask(p, args.shards, seed=base.training_seed, pred_dir=args.pred),
+        lambda: RelightTask(p, args.shards, seed=seed, pred_dir=args.pred),
         shards=args.shards,
         data=data,
         out=args.out,

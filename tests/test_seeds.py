@@ -126,6 +126,7 @@ def project(tmp_path, monkeypatch):
         (["-S", "render=1"], "stage 'render' reads"),  # a whole data section
         (["-S", "base.train_seed=3"], "--seeds"),
         (["-S", "base.seed=3"], "--seeds"),
+        (["-S", "relight.train.seed=3"], "relight.train.seed is 3, which pins that stage's training seed"),
         (["-S", "relight.lambda_ds=abc"], "relight.lambda_ds = 'abc'"),  # the params' own validation
         (["--seeds", "42", "42"], "distinct"),
         (["--metrics-file", "metrics/nothing.json"], "no stage of dvc.yaml declares it"),
@@ -138,6 +139,15 @@ def test_bad_command_lines_exit_2_before_anything_runs(project, argv, says, caps
     assert seeds.main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith("pilight-seeds: ") and says in err, err
+
+
+def test_a_params_file_that_pins_a_stage_seed_is_refused(project, capsys):
+    """A stage with its own train.seed ignores base.train_seed: the seeds would not vary it."""
+    params = yaml.safe_load((project / "params.yaml").read_text())
+    params["intrinsics"]["train"]["seed"] = 5
+    (project / "params.yaml").write_text(yaml.safe_dump(params))
+    assert seeds.main([]) == 2
+    assert "intrinsics.train.seed is 5, which pins" in capsys.readouterr().err
 
 
 def test_a_project_without_base_train_seed_is_refused(project, capsys):

@@ -111,6 +111,26 @@ def test_stages_after_the_shards_seed_from_train_seed(stage, train_seed, expecte
         assert ("identity", expected) in seen  # the checkpoints' run identity follows the training seed
 
 
+def test_a_stage_s_own_train_seed_pins_that_stage_alone():
+    """The shipped base's stage 2 was retrained with seed 1002 on its stage 1 of seed 1000: one stage's
+    train.seed overrides base.train_seed for that stage, and null leaves it to base.train_seed."""
+    from pilight.params import TrainParams
+
+    base = BaseParams(seed=1000, train_seed=None)
+    assert base.stage_training_seed(TrainParams(seed=1002)) == 1002
+    assert base.stage_training_seed(TrainParams()) == 1000
+    assert BaseParams(seed=42, train_seed=7).stage_training_seed(TrainParams(seed=0)) == 0  # 0 is a seed
+
+
+@pytest.mark.parametrize("stage, expected", [("train_relight", 1002), ("train_intrinsics", 7), ("relight", 7)])
+def test_relight_train_seed_seeds_stage_2s_training_and_nothing_else(stage, expected, tmp_path, monkeypatch):
+    params = params_file(tmp_path, {"base": {"seed": 42, "train_seed": 7}, "relight": {"train": {"seed": 1002}}})
+    seen = _seeds_of(stage, params, monkeypatch)
+    assert seen and all(seed == expected for _, seed in seen), seen
+    if stage.startswith("train_"):
+        assert ("identity", expected) in seen
+
+
 def _param_values(project: Path) -> dict[str, dict]:
     """Each stage's params deps as DVC reads them from the project's params.yaml."""
     from dvc.dependency.param import ParamsDependency

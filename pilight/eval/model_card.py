@@ -29,7 +29,8 @@ def _figures(metrics: dict[str, dict], keys: list[str]) -> list[str]:
 
 def _training(stage: str, p, log: dict, label: str | None = None, also: str = "", seed: int | None = None) -> str:
     """A stage's Training line; ``label`` replaces the bold stage name, ``also`` ends the run's description,
-    ``seed`` is the run's (base.train_seed, else base.seed): two runs of one recipe differ by it alone."""
+    ``seed`` is the run's (its train.seed, else base.train_seed, else base.seed): two runs of one recipe differ
+    by it alone."""
     m = log.get("machine", {})
     where = m.get("device") if m.get("device") not in (None, "cpu") else f"{m.get('cpu')}, {m.get('cores')} cores"
     seconds = log.get("seconds")
@@ -121,7 +122,9 @@ def model_card(
             line
             for stage, p in (("intrinsics", intrinsics), ("relight", relight))
             for line in (
-                kept[stage] if stage in kept else _training(stage, p, training.get(stage, {}), seed=base.training_seed),
+                kept[stage]
+                if stage in kept
+                else _training(stage, p, training.get(stage, {}), seed=base.stage_training_seed(p.train)),
                 *([_tuning(stage, tuned[stage][0], p, tuned[stage][1])] if stage in tuned else []),
             )
         ),

@@ -63,6 +63,14 @@ def test_a_retrained_stage_names_its_training_seed(tmp_path):
     assert ", seed 1000;" in line(_card(params_file(tmp_path / "n", {"base": {"seed": 1000, "train_seed": None}})))
 
 
+def test_a_stage_with_its_own_train_seed_names_that_seed(tmp_path):
+    """The shipped base: stage 1 of base.seed 1000, stage 2 retrained with relight.train.seed 1002."""
+    path = params_file(tmp_path, {"base": {"seed": 1000, "train_seed": None}, "relight": {"train": {"seed": 1002}}})
+    card = _card(path)
+    line = lambda stage: next(x for x in card.splitlines() if x.startswith(f"- **{stage}**"))
+    assert ", seed 1002;" in line("relight") and ", seed 1000;" in line("intrinsics")
+
+
 def test_a_stage_not_retrained_keeps_its_previous_training_line():
     kept = "- **intrinsics**: 6000 steps of 8, lr 0.0002 (cosine), bf16 precision; 0.58 h on a CPU (kept)"
     training = {"relight": {"steps": 10000, "mixed_precision": "bf16", "seconds": 3600.0}}
