@@ -28,7 +28,10 @@ from pilight.optional import installed, missing
 
 # The HDRIs Blender ships in datafiles/studiolights/world (no download needed).
 BUNDLED_HDRIS = ("city", "courtyard", "forest", "interior", "night", "studio", "sunrise", "sunset")
-SHAPES = ("sphere", "icosphere", "cube", "cylinder", "cone", "torus", "monkey")
+SHAPES = ("sphere", "icosphere", "cube", "cylinder", "cone", "torus", "monkey")  # the default list
+# Also allowed in render.scene.shapes: shapes with a hole that are not tori (pilight/render/holed_shapes.py);
+# not in the default list, so its scenes keep their draws.
+EXTRA_SHAPES = ("tube", "frame")
 PROCEDURAL_TEXTURES = ("noise", "voronoi", "checker", "wave", "brick", "magic")  # the default list
 # Also allowed in render.scene.textures (base-model variety); not in the default list, so its scenes keep their draws.
 EXTRA_TEXTURES = ("gradient", "gabor")
@@ -326,9 +329,9 @@ class SceneParams(_Section):
     @field_validator("shapes")
     @classmethod
     def _shapes(cls, v: tuple[str, ...]) -> tuple[str, ...]:
-        bad = [s for s in v if s not in SHAPES]
+        bad = [s for s in v if s not in SHAPES + EXTRA_SHAPES]
         if bad or not v:
-            raise ValueError(f"unknown shape(s) {bad}; allowed: {list(SHAPES)}")
+            raise ValueError(f"unknown shape(s) {bad}; allowed: {list(SHAPES + EXTRA_SHAPES)}")
         return v
 
     @field_validator("textures")

@@ -19,6 +19,7 @@ import numpy as np
 from mathutils import Euler, Matrix, Vector
 
 from pilight.params import RenderParams
+from pilight.render.holed_shapes import HOLED, add_holed_shape
 from pilight.render.materials import add_aov_layers, gray_ball_material, make_material, wire_principled_aovs
 from pilight.render.spec import half_height
 
@@ -71,6 +72,10 @@ def configure_cycles(scene, p: RenderParams, seed: int) -> None:
 
 
 def _shape(name: str):
+    if name in HOLED:  # built from their vertices: all smooth, split at every crease (holed_shapes.py)
+        obj = add_holed_shape(name)
+        obj.data.shade_smooth()
+        return obj
     add = bpy.ops.mesh
     {
         "sphere": lambda: add.primitive_uv_sphere_add(segments=48, ring_count=24),

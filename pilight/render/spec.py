@@ -29,7 +29,7 @@ import zlib
 
 import numpy as np
 
-from pilight.params import RenderParams
+from pilight.params import EXTRA_SHAPES, RenderParams
 from pilight.render.material_classes import PATTERN_EDGE, class_material, pattern_material
 
 SPLITS = ("train", "val", "test")
@@ -134,7 +134,9 @@ def half_height(obj: dict) -> float:
 def _object(rng, p: RenderParams, location, size: float, on_floor: bool = False) -> dict:
     shape = str(rng.choice(p.scene.shapes))
     modifiers = []
-    if rng.uniform() < p.scene.modifier_probability:
+    # The holed shapes keep their crisp rims: their faces, split at every crease, would come apart under
+    # subdivision or displacement (pilight/render/holed_shapes.py).
+    if rng.uniform() < p.scene.modifier_probability and shape not in EXTRA_SHAPES:
         modifiers.append(
             {"cube": "bevel", "cylinder": "bevel", "cone": "bevel"}.get(
                 shape, "displace" if rng.uniform() < 0.5 else "subdivision"
