@@ -16,6 +16,10 @@ byte, a truncated EXR, a file missing or added) is rendered again, and the stage
 marker written before the hashes were recorded (only the stamp) is accepted once its files are all there
 and every EXR decodes whole, and its hashes are recorded then. Before, the stamps hashed only the inputs:
 a damaged EXR was skipped over and `dvc repro` recorded it in dvc.lock as the new truth.
+
+The manifest is written only once every scene's `.done` matches its scene.json and every view is marked:
+a Dask task retried after its worker died between a scene's sidecar and its marker once skipped that
+scene, and the folder went to the shard stage without the marker (CI, 2026-12-07).
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ from pilight import atomic
 from pilight.data import layout
 from pilight.params import BaseParams, RenderParams
 from pilight.render.blender_log import blender_output_to
+from pilight.render.scene import RenderError
 from pilight.render.spec import SPLITS, scene_spec
 from pilight.render.views import (
     TMP_PREFIX,
@@ -41,8 +46,10 @@ from pilight.render.views import (
     legacy_view_problem,
     read_view_marker,
     render_scene,
+    scene_is_complete,
     scene_marker,
     view_files,
+    view_is_complete,
     view_stamp,
     write_json,
     write_scene_marker,
@@ -208,6 +215,19 @@ def _render_all(
                 shutil.rmtree(tmp_dir, ignore_errors=True)
     finally:
         bar.close()
+    # The manifest says the folder is complete, so it is written only when every scene is: an executor
+    # that skipped something (a retried task that trusted a half-written scene) fails loudly here.
+    unfinished = [
+        s["id"]
+        for s in specs
+        if not scene_is_complete(root, s["id"])
+        or not all(view_is_complete(root, s, v, p) for v in range(len(s["views"])))
+    ]
+    if unfinished:
+        raise RenderError(
+            f"{len(unfinished)} scene(s) have no complete .done markers after the render ({', '.join(unfinished[:5])}"
+            f"{', ...' if len(unfinished) > 5 else ''}); no manifest written: rerun the stage to finish them"
+        )
     # before the manifest: left by a killed earlier run, or by Dask workers killed mid-task (their
     # partitions were rerun elsewhere)
     remove_stale_scratch(root)

@@ -138,6 +138,19 @@ def scene_marker(root: Path, sid: str) -> Path:
     return Path(root) / sid / layout.DONE_MARKER
 
 
+def scene_is_complete(root: Path, sid: str) -> bool:
+    """The scene's marker holds the sha256 of the scene.json beside it. A worker killed between the two
+    writes leaves the sidecar without its marker: that scene is not complete, whatever its views say."""
+    sidecar, marker = Path(root) / sid / "scene.json", scene_marker(root, sid)
+    if not (sidecar.is_file() and marker.is_file()):
+        return False
+    try:
+        recorded = json.loads(marker.read_text(encoding="utf-8"))["sha256"]["scene.json"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+    return recorded == atomic.sha256_file(sidecar)
+
+
 def write_scene_marker(root: Path, sid: str) -> None:
     """The scene's `.done`: the sha256 of its scene.json (what shard reads beside the views)."""
     sidecar = Path(root) / sid / "scene.json"
@@ -226,7 +239,7 @@ def render_scene(spec: dict, p: RenderParams, root: Path, hdri_dir: Path, tmp_di
     tick = on_bundles or (lambda n: None)
     sid = spec["id"]
     pending = [v for v in range(len(spec["views"])) if not view_is_complete(root, spec, v, p)]
-    if not pending and (root / sid / "scene.json").is_file():
+    if not pending and scene_is_complete(root, sid):
         tick(bundles_of([spec]))
         return 0
     handles = S.build(spec, p, hdri_dir)

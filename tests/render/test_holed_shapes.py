@@ -93,3 +93,11 @@ def test_the_camera_sees_through_the_hole_and_the_face_around_it_faces_the_camer
     for y, x in face:
         assert mask[y, x] == 1, (y, x)
         np.testing.assert_allclose(normal[y, x], [0.0, 0.0, 1.0], atol=2e-3)
+
+
+def test_the_shapes_params_allow_are_the_shapes_the_renderer_builds():
+    """The names live in two places (params cannot import the renderer): a shape allowed but not built
+    would fail inside Blender; one built but not allowed could never be asked for."""
+    from pilight.params import EXTRA_SHAPES
+
+    assert set(EXTRA_SHAPES) == set(HOLED)

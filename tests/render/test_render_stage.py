@@ -69,6 +69,62 @@ def test_killed_render_resumes_to_identical_files(reference, tmp_path):
     assert not list(out.glob(".render_tmp_*")), "a dead run's scratch folder would reach the dataset's hash"
 
 
+def _specs_and_params(params_file: Path):
+    from pilight.params import BaseParams, RenderParams, read_params
+    from pilight.render.dataset import all_specs
+
+    raw = read_params(params_file)
+    p, base = RenderParams.model_validate(raw["render"]), BaseParams.model_validate(raw["base"])
+    return all_specs(p, base), p
+
+
+def test_scene_whose_marker_was_not_written_is_finished_not_skipped(reference, tmp_path):
+    """A worker killed between a scene's scene.json and its .done (CI saw it: a Dask task retried on a
+    restarted worker): every view is complete and the sidecar is there, yet the scene is not. Its rerun
+    writes the marker, and the folder equals the uninterrupted render."""
+    import shutil
+
+    pytest.importorskip("bpy")
+    from pilight.render import views
+
+    params, first = reference
+    specs, p = _specs_and_params(params)
+    out = tmp_path / "renders"
+    shutil.copytree(first, out)
+    (out / "manifest.json").unlink()
+    (out / "train_0000" / ".done").unlink()
+    spec = next(s for s in specs if s["id"] == "train_0000")
+    assert not views.scene_is_complete(out, "train_0000")
+    rendered = views.render_scene(spec, p, out, views.bundled_hdri_dir(), tmp_path)
+    assert rendered == 0, "its views were complete: nothing is rendered again"
+    assert views.scene_is_complete(out, "train_0000")
+    expected = {k: v for k, v in tree_digest(first).items() if k != "manifest.json"}
+    assert tree_digest(out) == expected
+
+
+def test_no_manifest_while_a_scene_is_unfinished(reference, tmp_path, monkeypatch):
+    """The manifest means the folder is complete: if the executor leaves a view unmarked, the stage fails
+    naming the scene and writes no manifest."""
+    import shutil
+
+    pytest.importorskip("bpy")
+    from pilight.params import BaseParams, RenderParams, read_params
+    from pilight.render import dataset
+    from pilight.render.scene import RenderError
+
+    params, first = reference
+    raw = read_params(params)
+    out = tmp_path / "renders"
+    shutil.copytree(first, out)
+    (out / "test_0000" / "v00" / ".done").unlink()
+    monkeypatch.setattr(dataset, "render_scene", lambda *a, **k: 0)  # an executor that renders nothing
+    with pytest.raises(RenderError, match=r"1 scene\(s\) have no complete \.done markers.*test_0000"):
+        dataset.render_dataset(
+            RenderParams.model_validate(raw["render"]), BaseParams.model_validate(raw["base"]), out, progress=False
+        )
+    assert not (out / "manifest.json").exists()
+
+
 def test_rerun_with_other_params_keeps_no_view_of_the_old_ones(reference, tmp_path):
     """Into last run's folder (as `dvc repro` with persist leaves it), with fewer scenes and other
     samples: the result is byte-identical to a clean render with the new params, and the rendering
