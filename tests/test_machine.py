@@ -19,9 +19,7 @@ from pilight import machine
     ],
 )
 def test_native_bf16_needs_the_instructions_not_only_onednn(onednn, x86, avx512_bf16, amx, native):
-    assert (
-        machine.bf16_is_native(onednn_runs_bf16=onednn, x86=x86, avx512_bf16=avx512_bf16, amx_bf16=amx) is native
-    )
+    assert machine.bf16_is_native(onednn_runs_bf16=onednn, x86=x86, avx512_bf16=avx512_bf16, amx_bf16=amx) is native
 
 
 def test_an_x86_cpu_without_bf16_instructions_is_not_native(monkeypatch):
