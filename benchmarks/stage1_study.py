@@ -11,6 +11,7 @@ Each seed trains the params' `intrinsics` section with the -S overrides (dotted 
 through the training loop the stage uses (accelerate, autocast, the same batches), then predicts the
 test split single-step and prints the held-out figures beside the wall-clock seconds of training and
 the CPU it ran on. ``--train-images N`` also scores N training images (memorisation shows as the gap).
+``--also-score NAME=SHARDS`` scores the same weights on another test split too (figures prefixed NAME_).
 ``--compare`` prints, per metric, each run's mean +- sd and the paired difference (by seed) with its
 95% t-interval. Nothing is written but the --json file; checkpoints live in a temporary folder.
 """
@@ -113,7 +114,14 @@ def normal_turn(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> tup
     return best_turn(unit(pred), unit(gt), range(-MAX_DEG, MAX_DEG + 1))
 
 
-def run_seed(raw: dict, shards: Path, seed: int, train_images: int, eval_shards: Path | None = None) -> dict:
+def run_seed(
+    raw: dict,
+    shards: Path,
+    seed: int,
+    train_images: int,
+    eval_shards: Path | None = None,
+    also: dict[str, Path] | None = None,
+) -> dict:
     from pilight.train.intrinsics import IntrinsicsTask
     from pilight.train.loop import train
 
@@ -133,6 +141,8 @@ def run_seed(raw: dict, shards: Path, seed: int, train_images: int, eval_shards:
     out["predict_seconds"] = time.perf_counter() - t0
     if train_images:
         out |= {f"train_{k}": v for k, v in score(task, shards, "train", train_images).items()}
+    for name, extra in (also or {}).items():  # the same weights on other test splits, prefixed by their name
+        out |= {f"{name}_{k}": v for k, v in score(task, extra, "test").items()}
     return out
 
 
@@ -172,6 +182,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--name", default=None, help="the run's name in --compare tables (default: the overrides)")
     ap.add_argument("--train-images", type=int, default=0)
     ap.add_argument("--eval-shards", type=Path, default=None, help="score the test split of these shards instead")
+    ap.add_argument(
+        "--also-score",
+        action="append",
+        default=[],
+        metavar="NAME=SHARDS",
+        help="also score the test split of these shards, figures prefixed NAME_ (repeatable)",
+    )
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--compare", type=Path, nargs="+", default=None, help="print a table of these --json files")
@@ -183,10 +200,16 @@ def main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(args.threads)
     raw = apply_overrides(read_params(args.params)["intrinsics"], args.overrides)
     IntrinsicsParams.model_validate(raw)  # a bad override fails before any training
+    also = {}
+    for item in args.also_score:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not (Path(path) / "index.json").is_file():
+            raise SystemExit(f"--also-score {item}: want NAME=SHARDS, a shard folder with an index.json")
+        also[name] = Path(path)
     result = {"name": args.name or " ".join(args.overrides) or "params", "overrides": args.overrides}
     result |= {"cpu": cpu_name(), "threads": torch.get_num_threads(), "seeds": []}
     for seed in args.seeds:
-        r = run_seed(raw, args.shards, seed, args.train_images, args.eval_shards)
+        r = run_seed(raw, args.shards, seed, args.train_images, args.eval_shards, also)
         result["seeds"].append(r)
         print(json.dumps(r), flush=True)
         if args.json:
