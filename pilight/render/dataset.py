@@ -45,6 +45,7 @@ from pilight.render.views import (
     bundles_of,
     legacy_view_problem,
     read_view_marker,
+    recorded_scene_hash,
     render_scene,
     scene_is_complete,
     scene_marker,
@@ -104,12 +105,7 @@ def verify_renders(root: Path, specs: list[dict], p: RenderParams, say=print) ->
         sidecar, smark = root / sid / "scene.json", scene_marker(root, sid)
         if not sidecar.is_file():
             continue
-        try:
-            recorded = (
-                json.loads(smark.read_text(encoding="utf-8"))["sha256"]["scene.json"] if smark.is_file() else None
-            )
-        except (OSError, ValueError, KeyError, TypeError):
-            recorded = ""
+        recorded = recorded_scene_hash(root, sid)
         if recorded is None:  # written before its hash was recorded: trusted once if it reads as this scene's
             try:
                 ok = json.loads(sidecar.read_text(encoding="utf-8")).get("id") == sid

@@ -138,17 +138,23 @@ def scene_marker(root: Path, sid: str) -> Path:
     return Path(root) / sid / layout.DONE_MARKER
 
 
+def recorded_scene_hash(root: Path, sid: str) -> str | None:
+    """The sha256 of scene.json that the scene's `.done` records: None without a marker, "" when the
+    marker cannot be read."""
+    marker = scene_marker(root, sid)
+    if not marker.is_file():
+        return None
+    try:
+        return json.loads(marker.read_text(encoding="utf-8"))["sha256"]["scene.json"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return ""
+
+
 def scene_is_complete(root: Path, sid: str) -> bool:
     """The scene's marker holds the sha256 of the scene.json beside it. A worker killed between the two
     writes leaves the sidecar without its marker: that scene is not complete, whatever its views say."""
-    sidecar, marker = Path(root) / sid / "scene.json", scene_marker(root, sid)
-    if not (sidecar.is_file() and marker.is_file()):
-        return False
-    try:
-        recorded = json.loads(marker.read_text(encoding="utf-8"))["sha256"]["scene.json"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return False
-    return recorded == atomic.sha256_file(sidecar)
+    sidecar, recorded = Path(root) / sid / "scene.json", recorded_scene_hash(root, sid)
+    return bool(recorded) and sidecar.is_file() and recorded == atomic.sha256_file(sidecar)
 
 
 def write_scene_marker(root: Path, sid: str) -> None:
