@@ -400,8 +400,8 @@ def write_group(files: dict[Path, object]) -> None:
         for path, arr in files.items():
             if path.suffix == ".exr":
                 write_exr(path, np.asarray(arr, np.float32), half=True)
-            else:
-                atomic.write_png(path, arr)
+            else:  # zlib level 1: 3-4x faster than PIL's 6 for 10-15 % more bytes (photos compress little)
+                atomic.write_png(path, arr, compress_level=1)
             done.append(path)
     except BaseException:
         for p in done:
@@ -501,6 +501,7 @@ def check_model_options(args) -> None:
 
 
 def _pipeline(args, stage: str, state=None):
+    from pilight import process_gc
     from pilight.params import ParamsError
     from pilight.pipeline import PIPELINE_FILE, PILightPipeline, PipelineError
 
@@ -523,6 +524,7 @@ def _pipeline(args, stage: str, state=None):
         raise CommandFailure(str(exc), 2) from None
     except PipelineError as exc:
         raise CommandFailure(str(exc)) from None
+    process_gc.release_collection()  # imports and weights are in: the work collects as usual
     # Only the checkout's own models/ are expected to match its params.yaml; another folder is
     # the user's choice and is used as its config.json says.
     print(f"pilight: models: {args.models.resolve()}", file=sys.stderr)
@@ -855,5 +857,17 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+def console() -> int:
+    """The ``pilight`` command: ``main()`` in a process of its own, whose garbage collector is kept off
+    the import-heavy start and the exit (``pilight.process_gc``; about 1.4 s of a 5.9 s relight)."""
+    from pilight import process_gc
+
+    process_gc.hold_collection()
+    try:
+        return main()
+    finally:
+        process_gc.skip_final_collection()
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(console())
