@@ -863,10 +863,8 @@ def console() -> int:
     from pilight import process_gc
 
     process_gc.hold_collection()
-    try:
-        return main()
-    finally:
-        process_gc.skip_final_collection()
+    process_gc.freeze_at_exit()
+    return main()
 
 
 if __name__ == "__main__":

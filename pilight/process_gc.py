@@ -9,13 +9,18 @@ imports and 0.8 s of the exit, of a 5.9 s command (``benchmarks/cli_startup.py``
 So the console entry point holds collection back while it imports and loads models, then freezes what
 exists by then (``gc.freeze``: those objects live as long as the process, and the collector never
 walks them again) and restores the thresholds for the work itself, so that a long batch or the app's
-server collects as usual. At exit it freezes once more, which leaves the exit's last collection nothing
-to walk. Only the console process does this: ``pilight.cli.main`` called in-process (the tests, a
-notebook) leaves the caller's collector alone.
+server collects as usual. ``pilight.cli.main`` called in-process (the tests, a notebook) leaves the
+caller's thresholds alone.
+
+Every DVC stage process pays the exit too (about 0.8 s each once torch is imported); the command and
+the stages (``pilight.stage_cli.run_stage``) register a freeze to run at the interpreter's exit, after
+the program's own exit handlers, which leaves the last collection nothing to walk. In an in-process
+caller that runs only when the caller itself exits.
 """
 
 from __future__ import annotations
 
+import atexit
 import gc
 
 # Collect the youngest generation every 100,000 allocations instead of 700 while importing: still
@@ -23,6 +28,7 @@ import gc
 STARTUP_THRESHOLD = 100_000
 
 _held_thresholds: tuple[int, ...] | None = None
+_freeze_registered = False
 
 
 def hold_collection() -> None:
@@ -44,6 +50,11 @@ def release_collection() -> None:
     _held_thresholds = None
 
 
-def skip_final_collection() -> None:
-    """Just before the process exits: nothing left is worth a last walk of every object."""
-    gc.freeze()
+def freeze_at_exit() -> None:
+    """Freeze everything when the interpreter exits (registered once): at that point nothing is worth a
+    last walk of every object. Exit handlers run last-registered first, so one registered at the start
+    runs after the program's own."""
+    global _freeze_registered
+    if not _freeze_registered:
+        atexit.register(gc.freeze)
+        _freeze_registered = True

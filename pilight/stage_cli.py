@@ -25,7 +25,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
-from pilight import atomic
+from pilight import atomic, process_gc
 from pilight.data.schema import DataError
 from pilight.failure import CommandFailure
 from pilight.params import ParamsError, load_section
@@ -53,6 +53,7 @@ def run_stage(
 ) -> int:
     """Parse ``argv``, load ``sections`` from --params, sweep the stale temporaries of ``outputs(args)``, run
     ``body(args, *sections)``; the exit code."""
+    process_gc.freeze_at_exit()  # the stage process's exit skips a last walk of torch's objects (~0.8 s)
     ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--params", default="params.yaml")
     options(ap)

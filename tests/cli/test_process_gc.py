@@ -1,6 +1,7 @@
 """The `pilight` command keeps the garbage collector off its start and exit (pilight.process_gc), and gives
 it back for the work: a long batch or the app's server must collect at CPython's own thresholds, and an
-in-process caller of pilight.cli.main (these tests, a notebook) must keep its collector as it was."""
+in-process caller of pilight.cli.main (these tests, a notebook) must keep its collector as it was. The DVC
+stages skip the exit's last collection too (pilight.stage_cli.run_stage)."""
 
 from __future__ import annotations
 
@@ -63,3 +64,41 @@ def test_a_relight_through_the_console_collects_at_cpythons_thresholds_after_loa
     rc, restored, frozen = r.stdout.split()
     assert (rc, restored, frozen) == ("0", "True", "True")  # thresholds given back once the models were loaded
     assert (tmp_path / "out" / "photo" / "left" / "relit.png").is_file()
+
+
+# A reference cycle with a finaliser, left for the interpreter's last collection: its line is printed
+# only if that collection walks it, i.e. only if nothing froze it first.
+CYCLE_AT_EXIT = """
+class Cycle:
+    def __del__(self):
+        print("collected at exit", flush=True)
+c = Cycle(); c.me = c; del c
+print("end of program", flush=True)
+"""
+
+
+def _child(code: str) -> str:
+    r = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, env=stage_env(), timeout=120
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    return r.stdout
+
+
+def test_without_the_freeze_the_exit_walks_what_is_left():  # the control: the probe below can see a walk
+    assert _child(CYCLE_AT_EXIT).split() == ["end", "of", "program", "collected", "at", "exit"]
+
+
+def test_freeze_at_exit_leaves_the_last_collection_nothing_to_walk():
+    out = _child(
+        "from pilight import process_gc\nprocess_gc.freeze_at_exit()\nprocess_gc.freeze_at_exit()\n" + CYCLE_AT_EXIT
+    )
+    assert out.split() == ["end", "of", "program"]
+
+
+def test_a_stage_process_skips_the_exit_walk():
+    run = (
+        "from pilight.stage_cli import run_stage\n"
+        "assert run_stage('probe', 'doc', [], ['base'], lambda ap: None, lambda args, base: 0) == 0\n"
+    )
+    assert _child(run + CYCLE_AT_EXIT).split() == ["end", "of", "program"]
