@@ -17,6 +17,15 @@ from fixtures.stage_scripts import REPO, stage_env
 from pilight import process_gc
 
 
+def _child(code: str, *args: str, cwd=REPO) -> str:
+    """stdout of ``code`` run by a fresh interpreter with ``args``, which must exit 0."""
+    r = subprocess.run(
+        [sys.executable, "-c", code, *args], capture_output=True, text=True, cwd=cwd, env=stage_env(), timeout=300
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    return r.stdout
+
+
 def test_release_restores_the_thresholds_and_freezes_what_the_start_made():
     before = gc.get_threshold()
     try:
@@ -57,11 +66,7 @@ def test_a_relight_through_the_console_collects_at_cpythons_thresholds_after_loa
     photo = tmp_path / "photo.png"
     Image.fromarray(np.random.default_rng(0).integers(0, 256, (32, 40, 3), dtype=np.uint8)).save(photo)
     args = ["relight", str(photo), "--light", "left", "--models", str(tiny_models), "-o", str(tmp_path / "out")]
-    r = subprocess.run(
-        [sys.executable, "-c", CHILD, *args], capture_output=True, text=True, cwd=tmp_path, env=stage_env(), timeout=300
-    )
-    assert r.returncode == 0, r.stderr[-2000:]
-    rc, restored, frozen = r.stdout.split()
+    rc, restored, frozen = _child(CHILD, *args, cwd=tmp_path).split()
     assert (rc, restored, frozen) == ("0", "True", "True")  # thresholds given back once the models were loaded
     assert (tmp_path / "out" / "photo" / "left" / "relit.png").is_file()
 
@@ -75,14 +80,6 @@ class Cycle:
 c = Cycle(); c.me = c; del c
 print("end of program", flush=True)
 """
-
-
-def _child(code: str) -> str:
-    r = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, env=stage_env(), timeout=120
-    )
-    assert r.returncode == 0, r.stderr[-2000:]
-    return r.stdout
 
 
 def test_without_the_freeze_the_exit_walks_what_is_left():  # the control: the probe below can see a walk
